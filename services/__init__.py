@@ -1,0 +1,1 @@
+"""services: the running product (configuration, messages, daemon, command line, evaluations)."""
