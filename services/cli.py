@@ -27,6 +27,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.commands.eval",
     "services.commands.dataset",
     "services.commands.bench",
+    "services.commands.config_cmd",
+    "services.commands.echo",
 )
 
 log = logging.getLogger("lino_loc")

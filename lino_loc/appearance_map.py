@@ -1,0 +1,705 @@
+"""Appearance maps: PCA features of images at known camera poses (eq. 1), and the map file.
+
+An :class:`AppearanceMap` holds the N camera poses ``x_i`` of a survey and, per sensing
+*channel*, the projection ``W`` (mean + components) and the N feature vectors
+``y_i = W (z_i - mean)`` (eq. 1). The ``intensity`` channel is the paper's image channel
+(preprocessing ``none`` / ``histeq`` / ``gradient``, see :mod:`lino_loc.preprocessing`); the
+``disparity`` channel (section 5, issue 7) holds a PCA fitted by EM with missing data
+(:mod:`lino_loc.pca_missing`) and projects sparse maps from their valid pixels alone.
+
+Channels plug in through :class:`ChannelKind` (see :func:`register_channel_kind`): a kind
+says how an observation becomes features (``project``) and how its projection model is
+written to and read back from the map file (``to_arrays`` / ``from_arrays``). Both built-in
+kinds are registered below; the disparity kind imports ``lino_loc.pca_missing`` and
+``lino_loc.disparity`` only when used.
+
+Working image size. Images are preprocessed at full resolution and then area-averaged to
+80 x 60 by default (``DEFAULT_SIZE``): D = 4800 pixels keeps the lab survey's data matrix
+(4000 x 4800 float32 = 77 MB) and the PCA cheap; the 4:3 shape matches the 320 x 240
+simulated camera; a 4x area average suppresses sensor noise and the high spatial
+frequencies that change fastest with small camera motions (the nearest-neighbour sensor
+model wants features that vary smoothly with pose, sections 3 and 6.1); and the paper's
+few (5-20) leading components only carry coarse structure anyway. Projecting a frame then
+costs d x D = 96 000 multiply-adds. The size is stored in the map and used at query time.
+
+Map file (design.md 4.3, a contract). One uncompressed ``.npz`` (``np.savez``, read back with
+``allow_pickle=False``), loadable without the dataset:
+
+- ``header``: UTF-8 JSON (a uint8 array) validated as :class:`MapHeader`: magic
+  ``"lino-loc-map"``, ``format_version`` (1), ``sha256`` over all other arrays, creation
+  time, source dataset, camera, and per channel its preprocessing, working size (w, h),
+  number of features, PCA method, parameters and the names of its arrays;
+- ``poses`` (N, 3) float64 camera poses;
+- per channel ``<name>/features`` (N, d) and the model arrays (``<name>/mean``,
+  ``<name>/components``, ``<name>/explained_variance``, and for disparity ``<name>/W`` and
+  ``<name>/observed_count``).
+
+The checksum is SHA-256 over every non-header array in name order (name, dtype, shape and
+raw bytes). :meth:`AppearanceMap.load` turns every way a file can be wrong (missing, empty,
+truncated, not an archive, a foreign archive, a newer format, a bad header, missing or
+inconsistent arrays, a checksum mismatch) into a one-line :class:`LinoLocError` naming the
+file and the problem.
+
+Usage::
+
+    from lino_loc.dataset import Dataset
+    from lino_loc.appearance_map import AppearanceMap, build_map
+    amap = build_map(Dataset.open("lab"), n_features=20, preprocess="histeq")
+    amap.save("lab.map.npz")
+    amap = AppearanceMap.load("lab.map.npz")
+    y = amap.channels["intensity"].project(grey_u8)     # (20,), eq. 1
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import logging
+import os
+import tempfile
+import zipfile
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from lino_loc import __version__
+from lino_loc.dataset import CameraInfo, Dataset
+from lino_loc.errors import LinoLocError
+from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, fit_pca
+from lino_loc.preprocessing import PREPROCESS_METHODS, Preprocess, preprocess, to_vector
+
+log = logging.getLogger(__name__)
+
+MAP_MAGIC = "lino-loc-map"
+MAP_FORMAT_VERSION = 1
+DEFAULT_SIZE: tuple[int, int] = (80, 60)
+DEFAULT_FEATURES = 20
+HEADER_KEY = "header"
+POSES_KEY = "poses"
+_ZIP_MAGIC = b"PK\x03\x04"
+
+ProgressFn = Callable[[int, int], None]
+
+
+# --------------------------------------------------------------------------- header models
+ParamValue = float | int | str | bool | None
+
+
+class ChannelHeader(BaseModel):
+    """What the header says about one channel."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: str
+    preprocess: str
+    size: tuple[int, int] = Field(description="working image size (width, height)")
+    n_features: int = Field(gt=0)
+    method: str
+    params: dict[str, ParamValue] = {}
+    arrays: list[str]
+
+
+class MapHeader(BaseModel):
+    """The JSON header of a map file (dict-able with ``model_dump``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    magic: Literal["lino-loc-map"] = MAP_MAGIC
+    format_version: int = MAP_FORMAT_VERSION
+    created: str
+    lino_loc_version: str = __version__
+    name: str = ""
+    source: str = ""
+    condition: str | None = None
+    n_images: int = Field(ge=1)
+    camera: CameraInfo
+    channels: dict[str, ChannelHeader]
+    sha256: str = ""
+
+
+# --------------------------------------------------------------------------- channels
+@dataclass
+class ChannelMap:
+    """One sensing channel of the map: projection model + the features of every map image.
+
+    ``pca`` is PCA-like (``mean`` (D,), ``components`` (d, D), ``explained_variance`` (d,)):
+    a :class:`lino_loc.pca.PCA` for intensity, a ``MissingDataPCA`` for disparity.
+    """
+
+    name: str
+    preprocess: str
+    size: tuple[int, int]
+    pca: Any
+    features: np.ndarray
+    method: str = "randomized"
+    params: dict[str, ParamValue] = field(default_factory=dict)
+
+    @property
+    def n_features(self) -> int:
+        return int(self.features.shape[1])
+
+    @property
+    def kind(self) -> ChannelKind:
+        return get_channel_kind(self.name)
+
+    def project(self, observation: np.ndarray) -> np.ndarray:
+        """Features (d,) of one observation (eq. 1): an image for intensity, a disparity map
+        (float pixels, NaN = none) for disparity."""
+        return self.kind.project(self, observation)
+
+
+@dataclass(frozen=True)
+class ChannelKind:
+    """How a channel turns observations into features and how its model is stored.
+
+    - ``project(channel, observation) -> (d,)`` features;
+    - ``to_arrays(channel) -> (arrays, params)``: the model's arrays (names without the
+      ``<channel>/`` prefix) and JSON-able parameters to keep in the header;
+    - ``from_arrays(arrays, params) -> model``: the inverse, used by :meth:`AppearanceMap.load`.
+    """
+
+    name: str
+    project: Callable[[ChannelMap, np.ndarray], np.ndarray]
+    to_arrays: Callable[[ChannelMap], tuple[dict[str, np.ndarray], dict[str, ParamValue]]]
+    from_arrays: Callable[[Mapping[str, np.ndarray], Mapping[str, ParamValue]], Any]
+
+
+_KINDS: dict[str, ChannelKind] = {}
+
+
+def register_channel_kind(kind: ChannelKind) -> None:
+    """Register (or replace) a channel kind by name."""
+    _KINDS[kind.name] = kind
+
+
+def get_channel_kind(name: str) -> ChannelKind:
+    try:
+        return _KINDS[name]
+    except KeyError:
+        raise LinoLocError(f"unknown map channel {name!r} (known: {', '.join(sorted(_KINDS))})") from None
+
+
+# ---- intensity
+def _intensity_project(ch: ChannelMap, image: np.ndarray) -> np.ndarray:
+    z = to_vector(preprocess(image, ch.preprocess), ch.size)  # type: ignore[arg-type]
+    return ch.pca.project(z)
+
+
+def _pca_to_arrays(ch: ChannelMap) -> tuple[dict[str, np.ndarray], dict[str, ParamValue]]:
+    p = ch.pca
+    return {
+        "mean": np.asarray(p.mean),
+        "components": np.asarray(p.components),
+        "explained_variance": np.asarray(p.explained_variance),
+    }, {}
+
+
+def _pca_from_arrays(a: Mapping[str, np.ndarray], params: Mapping[str, ParamValue]) -> PCA:
+    return PCA(mean=a["mean"], components=a["components"], explained_variance=a["explained_variance"])
+
+
+register_channel_kind(ChannelKind("intensity", _intensity_project, _pca_to_arrays, _pca_from_arrays))
+
+
+# ---- disparity (issue 7): EM-PCA with missing data; modules imported on use
+def _disparity_project(ch: ChannelMap, disparity: np.ndarray) -> np.ndarray:
+    from lino_loc.disparity import downsample_sparse
+
+    frac = float(ch.params.get("min_valid_fraction", 0.25) or 0.0)
+    z = downsample_sparse(disparity, ch.size, min_valid_fraction=frac).reshape(-1)
+    return np.asarray(ch.pca.project(z), dtype=np.float32)
+
+
+def _missing_to_arrays(ch: ChannelMap) -> tuple[dict[str, np.ndarray], dict[str, ParamValue]]:
+    p = ch.pca
+    arrays, _ = _pca_to_arrays(ch)
+    arrays["W"] = np.asarray(p.W)
+    arrays["observed_count"] = np.asarray(p.observed_count)
+    return arrays, {"sigma2": float(p.sigma2), "em_iterations": int(p.n_iter), "em_converged": bool(p.converged)}
+
+
+def _missing_from_arrays(a: Mapping[str, np.ndarray], params: Mapping[str, ParamValue]) -> Any:
+    from lino_loc.pca_missing import MissingDataPCA
+
+    return MissingDataPCA(
+        mean=a["mean"],
+        components=a["components"],
+        explained_variance=a["explained_variance"],
+        W=a["W"],
+        sigma2=float(params["sigma2"]),  # type: ignore[arg-type]
+        observed_count=a["observed_count"],
+        n_iter=int(params.get("em_iterations", 0) or 0),
+        converged=bool(params.get("em_converged", False)),
+    )
+
+
+register_channel_kind(ChannelKind("disparity", _disparity_project, _missing_to_arrays, _missing_from_arrays))
+
+
+# --------------------------------------------------------------------------- the map
+def _checksum(arrays: Mapping[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        if name == HEADER_KEY:
+            continue
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode("utf-8") + b"\0" + a.dtype.str.encode() + b"\0" + repr(a.shape).encode() + b"\0")
+        h.update(memoryview(a).cast("B") if a.size else b"")
+    return h.hexdigest()
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+@dataclass
+class AppearanceMap:
+    """Poses + channels (see module docstring). ``meta`` is the file header as a model."""
+
+    poses: np.ndarray
+    channels: dict[str, ChannelMap]
+    camera: CameraInfo
+    source: str = ""
+    name: str = ""
+    condition: str | None = None
+    created: str = field(default_factory=_utc_now)
+    path: Path | None = None
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+    @property
+    def preprocess(self) -> str:
+        """Preprocessing of the intensity channel."""
+        return self.channels["intensity"].preprocess if "intensity" in self.channels else ""
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """Working image size (w, h) of the intensity channel."""
+        ch = self.channels.get("intensity") or next(iter(self.channels.values()))
+        return ch.size
+
+    def _arrays_and_header(self) -> tuple[dict[str, np.ndarray], MapHeader]:
+        arrays: dict[str, np.ndarray] = {POSES_KEY: np.ascontiguousarray(self.poses, dtype=np.float64)}
+        chans: dict[str, ChannelHeader] = {}
+        n = arrays[POSES_KEY].shape[0]
+        for name, ch in self.channels.items():
+            if "/" in name or not name:
+                raise LinoLocError(f"map: bad channel name {name!r}")
+            model_arrays, extra = get_channel_kind(name).to_arrays(ch)
+            feats = np.ascontiguousarray(ch.features)
+            if feats.ndim != 2 or feats.shape[0] != n:
+                raise LinoLocError(f"map: channel {name!r} has features {feats.shape}, expected ({n}, d)")
+            model_arrays = {"features": feats, **model_arrays}
+            for k, v in model_arrays.items():
+                arrays[f"{name}/{k}"] = np.ascontiguousarray(v)
+            chans[name] = ChannelHeader(
+                kind=name,
+                preprocess=ch.preprocess,
+                size=(int(ch.size[0]), int(ch.size[1])),
+                n_features=int(feats.shape[1]),
+                method=ch.method,
+                params={**ch.params, **extra},
+                arrays=sorted(model_arrays),
+            )
+        header = MapHeader(
+            created=self.created,
+            name=self.name,
+            source=self.source,
+            condition=self.condition,
+            n_images=max(n, 1),
+            camera=self.camera,
+            channels=chans,
+            sha256=_checksum(arrays),
+        )
+        return arrays, header
+
+    @property
+    def meta(self) -> MapHeader:
+        """The header this map would be saved with (checksum included)."""
+        return self._arrays_and_header()[1]
+
+    def save(self, path: Path | str) -> Path:
+        """Write the map file atomically (temporary file + rename). Returns the path."""
+        path = Path(path)
+        arrays, header = self._arrays_and_header()
+        hdr = np.frombuffer(header.model_dump_json().encode("utf-8"), dtype=np.uint8)
+        parent = path.parent if str(path.parent) else Path(".")
+        if not parent.is_dir():
+            raise LinoLocError(f"{path}: folder {parent} does not exist")
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **{HEADER_KEY: hdr}, **arrays)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+        self.path = path
+        return path
+
+    @classmethod
+    def load(cls, path: Path | str) -> AppearanceMap:
+        """Read and verify a map file; any problem -> one-line :class:`LinoLocError`."""
+        path = Path(path)
+        if not path.exists():
+            raise LinoLocError(f"{path}: no such map file")
+        if not path.is_file():
+            raise LinoLocError(f"{path}: not a map file (a folder?)")
+        with open(path, "rb") as fh:
+            start = fh.read(8)
+        if not start:
+            raise LinoLocError(f"{path}: empty file, not a lino-loc map")
+        if not start.startswith(_ZIP_MAGIC):
+            what = "a PNG image" if start.startswith(b"\x89PNG") else "an .npy array" if start.startswith(b"\x93NUMPY") else "not an .npz archive"
+            raise LinoLocError(f"{path}: not a lino-loc map file ({what})")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                names = set(npz.files)
+                if HEADER_KEY not in names:
+                    raise LinoLocError(f"{path}: not a lino-loc map file (an .npz archive without a map header)")
+                header_raw = npz[HEADER_KEY]
+                header = cls._parse_header(path, header_raw)
+                arrays = {k: npz[k] for k in npz.files if k != HEADER_KEY}
+        except LinoLocError:
+            raise
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise LinoLocError(f"{path}: truncated or corrupt map file ({msg})") from None
+        if _checksum(arrays) != header.sha256:
+            raise LinoLocError(f"{path}: checksum mismatch (the file is corrupt or was modified)")
+        return cls._from_parts(path, header, arrays)
+
+    @staticmethod
+    def _parse_header(path: Path, raw: np.ndarray) -> MapHeader:
+        if raw.dtype != np.uint8 or raw.ndim != 1:
+            raise LinoLocError(f"{path}: not a lino-loc map file (header is not JSON bytes)")
+        try:
+            obj = json.loads(raw.tobytes().decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            raise LinoLocError(f"{path}: not a lino-loc map file (header is not JSON)") from None
+        if not isinstance(obj, dict) or obj.get("magic") != MAP_MAGIC:
+            raise LinoLocError(f"{path}: not a lino-loc map file (wrong magic)")
+        version = obj.get("format_version")
+        if not isinstance(version, int) or isinstance(version, bool):
+            raise LinoLocError(f"{path}: bad map header: format_version {version!r} is not an integer")
+        if version > MAP_FORMAT_VERSION:
+            raise LinoLocError(
+                f"{path}: map format version {version} is newer than this lino-loc reads "
+                f"({MAP_FORMAT_VERSION}); upgrade lino-loc"
+            )
+        if version != MAP_FORMAT_VERSION:
+            raise LinoLocError(f"{path}: unsupported map format version {version}")
+        try:
+            return MapHeader.model_validate(obj)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            loc = ".".join(str(p) for p in err.get("loc", ()))
+            raise LinoLocError(f"{path}: bad map header: field '{loc}': {err.get('msg')}") from None
+
+    @classmethod
+    def _from_parts(cls, path: Path, header: MapHeader, arrays: dict[str, np.ndarray]) -> AppearanceMap:
+        def bad(msg: str) -> LinoLocError:
+            return LinoLocError(f"{path}: corrupt map file: {msg}")
+
+        poses = arrays.get(POSES_KEY)
+        if poses is None or poses.ndim != 2 or poses.shape[1] != 3 or poses.dtype.kind != "f":
+            raise bad("missing or malformed 'poses' array")
+        n = poses.shape[0]
+        if n != header.n_images:
+            raise bad(f"{n} poses but the header says {header.n_images} images")
+        channels: dict[str, ChannelMap] = {}
+        for name, ch in header.channels.items():
+            kind = get_channel_kind(ch.kind)
+            own: dict[str, np.ndarray] = {}
+            for k in ch.arrays:
+                a = arrays.get(f"{name}/{k}")
+                if a is None:
+                    raise bad(f"channel {name!r}: missing array {k!r}")
+                own[k] = a
+            for k in ("features", "mean", "components"):
+                if k not in own:
+                    raise bad(f"channel {name!r}: missing array {k!r}")
+            w, h = ch.size
+            d, D = ch.n_features, w * h
+            feats, mean, comps = own["features"], own["mean"], own["components"]
+            if feats.shape != (n, d) or mean.shape != (D,) or comps.shape != (d, D):
+                raise bad(
+                    f"channel {name!r}: shapes features {feats.shape}, mean {mean.shape}, "
+                    f"components {comps.shape} do not match {n} images, {d} features, {w}x{h} pixels"
+                )
+            try:
+                model = kind.from_arrays(own, ch.params)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise bad(f"channel {name!r}: {exc}") from None
+            channels[name] = ChannelMap(
+                name=name,
+                preprocess=ch.preprocess,
+                size=(int(w), int(h)),
+                pca=model,
+                features=feats,
+                method=ch.method,
+                params={k: v for k, v in ch.params.items()},
+            )
+        return cls(
+            poses=poses,
+            channels=channels,
+            camera=header.camera,
+            source=header.source,
+            name=header.name,
+            condition=header.condition,
+            created=header.created,
+            path=path,
+        )
+
+    def info(self) -> dict[str, Any]:
+        """A JSON-ready summary of what the map holds (for ``lino-loc map info``)."""
+        header = self.meta
+        p = np.asarray(self.poses, dtype=np.float64)
+        chans: dict[str, Any] = {}
+        for name, ch in self.channels.items():
+            ev = np.asarray(ch.pca.explained_variance, dtype=np.float64)
+            total = ch.params.get("total_variance")
+            entry: dict[str, Any] = {
+                "preprocess": ch.preprocess,
+                "size": [int(ch.size[0]), int(ch.size[1])],
+                "n_features": ch.n_features,
+                "method": ch.method,
+                "explained_variance": [float(v) for v in ev],
+                "params": dict(header.channels[name].params),
+            }
+            if isinstance(total, int | float) and total > 0:
+                entry["variance_fraction"] = float(ev.sum() / total)
+            chans[name] = entry
+        return {
+            "file": None if self.path is None else str(self.path),
+            "format_version": header.format_version,
+            "name": self.name,
+            "source": self.source,
+            "condition": self.condition,
+            "created": self.created,
+            "lino_loc_version": header.lino_loc_version,
+            "n_images": len(self),
+            "camera": self.camera.model_dump(),
+            "extent": {
+                "x": [float(p[:, 0].min()), float(p[:, 0].max())],
+                "y": [float(p[:, 1].min()), float(p[:, 1].max())],
+            },
+            "channels": chans,
+            "sha256": header.sha256,
+        }
+
+
+# --------------------------------------------------------------------------- building
+def load_vectors(
+    dataset: Dataset,
+    method: Preprocess,
+    size: tuple[int, int],
+    *,
+    workers: int | None = None,
+    progress: ProgressFn | None = None,
+    chunk: int = 64,
+) -> np.ndarray:
+    """Read, preprocess and area-average every image of ``dataset`` -> (N, w*h) float32.
+
+    Files are decoded straight to grey (``cv2.IMREAD_GRAYSCALE``) by a thread pool
+    (OpenCV releases the GIL), in chunks written into one preallocated matrix.
+    """
+    n = len(dataset)
+    w, h = int(size[0]), int(size[1])
+    X = np.empty((n, w * h), dtype=np.float32)
+    paths = [dataset.image_path(i) for i in range(n)]
+
+    def work(lo: int, hi: int) -> int:
+        for i in range(lo, hi):
+            X[i] = to_vector(preprocess(Dataset.read_grey(paths[i]), method), (w, h))
+        return hi - lo
+
+    bounds = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
+    nw = workers if workers is not None else min(4, os.cpu_count() or 1)
+    done = 0
+    if nw <= 1 or len(bounds) <= 1:
+        for lo, hi in bounds:
+            done += work(lo, hi)
+            if progress:
+                progress(done, n)
+        return X
+    with ThreadPoolExecutor(max_workers=nw) as pool:
+        futures = [pool.submit(work, lo, hi) for lo, hi in bounds]
+        try:
+            for f in futures:
+                done += f.result()
+                if progress:
+                    progress(done, n)
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+    return X
+
+
+def _project_rows(pca: PCA, X: np.ndarray, block: int = 1024) -> tuple[np.ndarray, float]:
+    """Features of every row (eq. 1), and the total variance sum_j var(x_j), in row blocks
+    (no full centred copy of X)."""
+    n = X.shape[0]
+    Y = np.empty((n, pca.components.shape[0]), dtype=np.float32)
+    ss = 0.0
+    for lo in range(0, n, block):
+        Xc = X[lo : lo + block] - pca.mean
+        Y[lo : lo + block] = Xc @ pca.components.T
+        ss += float(np.einsum("ij,ij->", Xc, Xc, dtype=np.float64))
+    return Y, ss / n
+
+
+def build_intensity_channel(
+    dataset: Dataset,
+    n_features: int = DEFAULT_FEATURES,
+    preprocess: Preprocess = "none",
+    size: tuple[int, int] = DEFAULT_SIZE,
+    progress: ProgressFn | None = None,
+    *,
+    method: PcaMethod = "randomized",
+    seed: int = 0,
+    workers: int | None = None,
+) -> ChannelMap:
+    """The intensity channel: preprocess, area-average, PCA (eq. 1), features of every image."""
+    X = load_vectors(dataset, preprocess, size, workers=workers, progress=progress)
+    pca = fit_pca(X, n_features, method=method, seed=seed)
+    Y, total = _project_rows(pca, X)
+    return ChannelMap(
+        name="intensity",
+        preprocess=preprocess,
+        size=(int(size[0]), int(size[1])),
+        pca=pca,
+        features=Y,
+        method=method,
+        params={"total_variance": total, "seed": seed},
+    )
+
+
+def build_disparity_channel(
+    dataset: Dataset,
+    n_features: int = DEFAULT_FEATURES,
+    size: tuple[int, int] = DEFAULT_SIZE,
+    progress: ProgressFn | None = None,
+    *,
+    min_valid_fraction: float = 0.25,
+    seed: int = 0,
+    max_iter: int = 100,
+) -> ChannelMap:
+    """The disparity channel (section 5): sparse disparity per image (from ``disparity``, or
+    from ``depth`` by f*B/Z, or inverse depth without a baseline), NaN-aware area-average,
+    PCA with missing data by EM, and features from the valid pixels alone."""
+    from lino_loc.disparity import depth_to_disparity, depth_to_inverse_depth, downsample_sparse
+    from lino_loc.pca_missing import fit_pca_missing
+
+    n = len(dataset)
+    w, h = int(size[0]), int(size[1])
+    cam = dataset.meta.camera
+    if dataset.has_disparity:
+        units = "disparity_px"
+    elif dataset.has_depth:
+        units = "disparity_px" if cam.baseline_m else "inverse_depth_per_m"
+    else:
+        raise LinoLocError(f"{dataset.root}: no disparity or depth in this dataset: cannot build a disparity channel")
+    X = np.full((n, w * h), np.nan, dtype=np.float32)
+    for i in range(n):
+        disp = dataset.disparity(i) if dataset.has_disparity else None
+        if disp is None and not dataset.has_disparity:
+            depth = dataset.depth(i)
+            if depth is not None:
+                disp = (
+                    depth_to_disparity(depth, cam.fx, cam.baseline_m)
+                    if cam.baseline_m
+                    else depth_to_inverse_depth(depth)
+                )
+        if disp is not None:
+            X[i] = downsample_sparse(disp, (w, h), min_valid_fraction=min_valid_fraction).reshape(-1)
+        if progress and ((i + 1) % 64 == 0 or i + 1 == n):
+            progress(i + 1, n)
+    model = fit_pca_missing(X, n_features, seed=seed, max_iter=max_iter, dtype=np.float32)
+    Y = np.asarray(model.project(X), dtype=np.float32)
+    return ChannelMap(
+        name="disparity",
+        preprocess="none",
+        size=(w, h),
+        pca=model,
+        features=Y,
+        method="em-missing",
+        params={
+            "min_valid_fraction": float(min_valid_fraction),
+            "units": units,
+            "seed": seed,
+            "valid_fraction": float(np.isfinite(X).mean()),
+        },
+    )
+
+
+def build_map(
+    dataset: Dataset,
+    n_features: int = DEFAULT_FEATURES,
+    preprocess: Preprocess = "none",
+    size: tuple[int, int] = DEFAULT_SIZE,
+    condition: str | None = None,
+    progress: ProgressFn | None = None,
+    *,
+    method: PcaMethod = "randomized",
+    channels: Sequence[str] = ("intensity",),
+    seed: int = 0,
+    workers: int | None = None,
+) -> AppearanceMap:
+    """Build an appearance map from a dataset (eq. 1 for every image).
+
+    ``condition`` keeps only the rows recorded under that condition (e.g. ``tube``, the
+    mapping light). ``channels``: ``("intensity",)`` or ``("intensity", "disparity")``.
+    ``progress(done, total)`` is called while images are read.
+    """
+    if preprocess not in PREPROCESS_METHODS:
+        raise LinoLocError(f"preprocess: unknown method {preprocess!r} (choose from {', '.join(PREPROCESS_METHODS)})")
+    if method not in PCA_METHODS:
+        raise LinoLocError(f"PCA method: unknown {method!r} (choose from {', '.join(PCA_METHODS)})")
+    w, h = int(size[0]), int(size[1])
+    cam = dataset.meta.camera
+    if not (0 < w <= cam.width and 0 < h <= cam.height):
+        raise LinoLocError(f"map size {w}x{h} must be positive and at most the camera's {cam.width}x{cam.height}")
+    ds = dataset
+    if condition is not None:
+        ds = dataset.where(condition)
+        if len(ds) == 0:
+            have = sorted({c for c in dataset.conditions if c is not None})
+            raise LinoLocError(f"{dataset.root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
+    n = len(ds)
+    if n_features < 1 or n_features > min(n - 1, w * h):
+        raise LinoLocError(
+            f"{dataset.root}: {n_features} features asked but {n} images of {w}x{h} allow at most {max(min(n - 1, w * h), 0)}"
+        )
+    unknown = [c for c in channels if c not in ("intensity", "disparity")]
+    if unknown or "intensity" not in channels:
+        raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
+    chans: dict[str, ChannelMap] = {
+        "intensity": build_intensity_channel(
+            ds, n_features, preprocess, (w, h), progress, method=method, seed=seed, workers=workers
+        )
+    }
+    if "disparity" in channels:
+        chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed)
+    return AppearanceMap(
+        poses=ds.poses.copy(),
+        channels=chans,
+        camera=ds.meta.camera,
+        source=ds.meta.source or str(ds.root),
+        name=ds.meta.name,
+        condition=condition,
+    )

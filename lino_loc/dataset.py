@@ -1,0 +1,500 @@
+"""Dataset folders: a survey of images at known camera poses (design.md 4.2, a contract).
+
+A dataset folder holds::
+
+    DATASET/
+      dataset.json     DatasetMeta: version, name, camera, disparity_scale, depth_scale,
+                       conditions, source
+      poses.csv        header row; columns image,x,y,theta and optionally
+                       right, disparity, depth, condition, stamp
+      images/          8-bit PNG or JPEG, grey or colour (read as grey)
+      images_right/    optional right image of the stereo pair
+      disparity/       optional 16-bit PNG: disparity [px] * disparity_scale, 0 = no value
+      depth/           optional 16-bit PNG: depth [m] * depth_scale, 0 = no value
+
+``x, y`` (metres) and ``theta`` (radians, CCW, REP-103) are the *camera* pose in the map
+frame: the ``x_i`` of the appearance map (eq. 1 pairs each image ``z_i`` with ``x_i``).
+Paths in ``poses.csv`` are relative to the folder. An empty ``right``/``disparity``/
+``depth``/``condition``/``stamp`` cell means "none for this row".
+
+Usage::
+
+    from lino_loc.dataset import CameraInfo, DatasetMeta, DatasetWriter, Dataset
+
+    meta = DatasetMeta(name="lab", camera=CameraInfo(width=320, height=240, fx=300,
+                       fy=300, cx=160, cy=120, baseline_m=0.075))
+    with DatasetWriter("out/lab", meta) as w:
+        w.add(grey_u8, (1.0, 2.0, 0.5), condition="tube", depth=depth_m)
+    ds = Dataset.open("out/lab")          # validates; LinoLocError on any problem
+    img = ds.image(0)                     # uint8 grey
+    tube = ds.where("tube")
+
+:meth:`Dataset.open` checks everything that is cheap (schema, version, every cell of
+``poses.csv``, that every referenced file exists) and raises :class:`LinoLocError` with one
+line naming the file, row and field. Reading an unreadable image later raises the same.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from lino_loc.errors import LinoLocError
+
+DATASET_VERSION = 1
+META_FILE = "dataset.json"
+POSES_FILE = "poses.csv"
+REQUIRED_COLUMNS = ("image", "x", "y", "theta")
+OPTIONAL_COLUMNS = ("right", "disparity", "depth", "condition", "stamp")
+_FILE_COLUMNS = ("image", "right", "disparity", "depth")
+_SUBDIRS = {"image": "images", "right": "images_right", "disparity": "disparity", "depth": "depth"}
+
+
+class CameraInfo(BaseModel):
+    """Pinhole intrinsics of the (left) camera, in pixels; ``baseline_m`` for a stereo pair."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    fx: float = Field(gt=0, allow_inf_nan=False)
+    fy: float = Field(gt=0, allow_inf_nan=False)
+    cx: float = Field(allow_inf_nan=False)
+    cy: float = Field(allow_inf_nan=False)
+    baseline_m: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+
+
+class DatasetMeta(BaseModel):
+    """Contents of ``dataset.json``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    version: int = DATASET_VERSION
+    name: str
+    camera: CameraInfo
+    disparity_scale: float = Field(default=16, gt=0, allow_inf_nan=False)
+    depth_scale: float = Field(default=1000, gt=0, allow_inf_nan=False)
+    conditions: list[str] = []
+    source: str = ""
+
+
+def _one_line_validation(exc: ValidationError) -> str:
+    """The first pydantic error as ``field.sub: message`` (one line)."""
+    err = exc.errors()[0]
+    loc = ".".join(str(p) for p in err.get("loc", ())) or "(root)"
+    extra = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"field '{loc}': {err.get('msg', 'invalid')}{extra}"
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder and a rename."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def encode_scaled_u16(values: np.ndarray, scale: float) -> np.ndarray:
+    """float map -> uint16 ``round(v * scale)``; NaN, <= 0 and out-of-range values -> 0 (none)."""
+    v = np.asarray(values, dtype=np.float64) * float(scale)
+    ok = np.isfinite(v) & (v > 0) & (v < 65535.5)
+    out = np.zeros(v.shape, dtype=np.uint16)
+    out[ok] = np.rint(v[ok]).astype(np.uint16)
+    return out
+
+
+def decode_scaled_u16(raw: np.ndarray, scale: float) -> np.ndarray:
+    """uint16 -> float32 ``raw / scale`` with 0 -> NaN (no value)."""
+    out = raw.astype(np.float32) / np.float32(scale)
+    out[raw == 0] = np.nan
+    return out
+
+
+class DatasetWriter:
+    """Write a dataset folder row by row (context manager).
+
+    Images are written as they are added (``images/000000.png`` ...); ``poses.csv`` and then
+    ``dataset.json`` are written atomically on :meth:`close` (a folder without
+    ``dataset.json`` is an unfinished survey, and :meth:`Dataset.open` refuses it). If the
+    ``with`` block raises, nothing is finalised. Conditions used in :meth:`add` are appended
+    to ``meta.conditions``.
+    """
+
+    def __init__(self, root: Path | str, meta: DatasetMeta, overwrite: bool = False) -> None:
+        self.root = Path(root)
+        self.meta = meta.model_copy(deep=True)
+        if self.root.exists():
+            if not self.root.is_dir():
+                raise LinoLocError(f"{self.root}: exists and is not a folder")
+            if any(self.root.iterdir()):
+                if not overwrite:
+                    raise LinoLocError(
+                        f"{self.root}: folder exists and is not empty (use overwrite to replace it)"
+                    )
+                for name in (META_FILE, POSES_FILE):
+                    (self.root / name).unlink(missing_ok=True)
+                for sub in _SUBDIRS.values():
+                    if (self.root / sub).is_dir():
+                        shutil.rmtree(self.root / sub)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._rows: list[dict[str, str]] = []
+        self._closed = False
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._closed = True
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def _write_png(self, kind: str, index: int, array: np.ndarray) -> str:
+        rel = f"{_SUBDIRS[kind]}/{index:06d}.png"
+        path = self.root / rel
+        path.parent.mkdir(exist_ok=True)
+        if not cv2.imwrite(str(path), array):
+            raise LinoLocError(f"{path}: could not write image")
+        return rel
+
+    def _check_image(self, what: str, image: np.ndarray) -> np.ndarray:
+        img = np.asarray(image)
+        if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+            raise LinoLocError(
+                f"{self.root}: {what} must be uint8 HxW or HxWx3, got {img.dtype} {img.shape}"
+            )
+        self._check_size(what, img.shape[:2])
+        return img
+
+    def _check_size(self, what: str, shape: tuple[int, ...]) -> None:
+        cam = self.meta.camera
+        if tuple(shape) != (cam.height, cam.width):
+            raise LinoLocError(
+                f"{self.root}: {what} is {shape[1]}x{shape[0]}, camera is {cam.width}x{cam.height}"
+            )
+
+    def add(
+        self,
+        image: np.ndarray,
+        pose: Sequence[float] | np.ndarray,
+        condition: str | None = None,
+        depth: np.ndarray | None = None,
+        disparity: np.ndarray | None = None,
+        right: np.ndarray | None = None,
+        stamp: float | None = None,
+    ) -> int:
+        """Add one row; returns its index. ``depth`` in metres, ``disparity`` in pixels
+        (float arrays, NaN or <= 0 = no value); ``right`` uint8 like ``image``."""
+        if self._closed:
+            raise LinoLocError(f"{self.root}: writer is closed")
+        p = np.asarray(pose, dtype=np.float64).reshape(-1)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise LinoLocError(f"{self.root}: pose must be 3 finite numbers (x, y, theta), got {pose!r}")
+        if stamp is not None and not math.isfinite(float(stamp)):
+            raise LinoLocError(f"{self.root}: stamp must be finite, got {stamp!r}")
+        if condition is not None and ("," in condition or "\n" in condition or condition == ""):
+            raise LinoLocError(f"{self.root}: bad condition name {condition!r}")
+        index = len(self._rows)
+        row: dict[str, str] = {}
+        row["image"] = self._write_png("image", index, self._check_image("image", image))
+        row["x"], row["y"], row["theta"] = (repr(float(v)) for v in p)
+        if right is not None:
+            row["right"] = self._write_png("right", index, self._check_image("right image", right))
+        if disparity is not None:
+            d = np.asarray(disparity)
+            self._check_size("disparity", d.shape)
+            row["disparity"] = self._write_png(
+                "disparity", index, encode_scaled_u16(d, self.meta.disparity_scale)
+            )
+        if depth is not None:
+            z = np.asarray(depth)
+            self._check_size("depth", z.shape)
+            row["depth"] = self._write_png("depth", index, encode_scaled_u16(z, self.meta.depth_scale))
+        row["condition"] = condition or ""
+        row["stamp"] = "" if stamp is None else repr(float(stamp))
+        if condition is not None and condition not in self.meta.conditions:
+            self.meta.conditions.append(condition)
+        self._rows.append(row)
+        return index
+
+    def close(self) -> None:
+        """Write ``poses.csv`` then ``dataset.json`` (both atomically)."""
+        if self._closed:
+            return
+        self._closed = True
+        columns = list(REQUIRED_COLUMNS)
+        for opt in ("right", "disparity", "depth"):
+            if any(opt in r for r in self._rows):
+                columns.append(opt)
+        columns += ["condition", "stamp"]
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(columns)
+        for r in self._rows:
+            w.writerow([r.get(c, "") for c in columns])
+        _atomic_write_text(self.root / POSES_FILE, buf.getvalue())
+        _atomic_write_text(self.root / META_FILE, self.meta.model_dump_json(indent=2) + "\n")
+
+
+class Dataset:
+    """A validated dataset folder (open with :meth:`open`).
+
+    Attributes: ``root``, ``meta`` (:class:`DatasetMeta`), ``poses`` (N, 3) float64 camera
+    poses, ``conditions`` (list of str or None), ``stamps`` (N,) float64, NaN = none.
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        meta: DatasetMeta,
+        poses: np.ndarray,
+        files: dict[str, list[str | None]],
+        conditions: list[str | None],
+        stamps: np.ndarray,
+    ) -> None:
+        self.root = root
+        self.meta = meta
+        self.poses = poses
+        self.conditions = conditions
+        self.stamps = stamps
+        self._files = files
+
+    # ----------------------------------------------------------------- opening
+    @classmethod
+    def open(cls, root: Path | str) -> Dataset:
+        """Open and validate a dataset folder; any problem -> one-line :class:`LinoLocError`."""
+        root = Path(root)
+        if not root.is_dir():
+            raise LinoLocError(f"{root}: not a dataset folder (no such folder)")
+        meta = cls._read_meta(root / META_FILE)
+        poses, files, conditions, stamps = cls._read_poses(root, root / POSES_FILE)
+        return cls(root, meta, poses, files, conditions, stamps)
+
+    @staticmethod
+    def _read_meta(path: Path) -> DatasetMeta:
+        if not path.is_file():
+            raise LinoLocError(f"{path}: missing (not a dataset folder, or an unfinished survey)")
+        try:
+            raw = json.loads(path.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            raise LinoLocError(f"{path}: not a JSON text file") from None
+        except json.JSONDecodeError as exc:
+            raise LinoLocError(f"{path}: bad JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+        if not isinstance(raw, dict):
+            raise LinoLocError(f"{path}: expected a JSON object, got {type(raw).__name__}")
+        version = raw.get("version")
+        if not isinstance(version, int) or isinstance(version, bool):
+            raise LinoLocError(f"{path}: field 'version': missing or not an integer ({version!r})")
+        if version > DATASET_VERSION:
+            raise LinoLocError(
+                f"{path}: field 'version': dataset version {version} is newer than this lino-loc "
+                f"reads ({DATASET_VERSION}); upgrade lino-loc"
+            )
+        if version != DATASET_VERSION:
+            raise LinoLocError(f"{path}: field 'version': unsupported dataset version {version}")
+        try:
+            return DatasetMeta.model_validate(raw)
+        except ValidationError as exc:
+            raise LinoLocError(f"{path}: {_one_line_validation(exc)}") from None
+
+    @staticmethod
+    def _read_poses(
+        root: Path, path: Path
+    ) -> tuple[np.ndarray, dict[str, list[str | None]], list[str | None], np.ndarray]:
+        if not path.is_file():
+            raise LinoLocError(f"{path}: missing")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise LinoLocError(f"{path}: not a UTF-8 text file") from None
+        reader = csv.reader(io.StringIO(text))
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise LinoLocError(f"{path}: empty file (expected a header row)") from None
+        except csv.Error as exc:
+            raise LinoLocError(f"{path}: line 1: {exc}") from None
+        for col in REQUIRED_COLUMNS:
+            if col not in header:
+                raise LinoLocError(f"{path}: header: missing column '{col}' (have {','.join(header)})")
+        seen: set[str] = set()
+        for col in header:
+            if col in seen:
+                raise LinoLocError(f"{path}: header: duplicate column '{col}'")
+            if col not in REQUIRED_COLUMNS and col not in OPTIONAL_COLUMNS:
+                raise LinoLocError(
+                    f"{path}: header: unknown column '{col}' (known: "
+                    f"{','.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)})"
+                )
+            seen.add(col)
+        idx = {c: header.index(c) for c in header}
+        poses: list[tuple[float, float, float]] = []
+        files: dict[str, list[str | None]] = {c: [] for c in _FILE_COLUMNS}
+        conditions: list[str | None] = []
+        stamps: list[float] = []
+
+        def exists(rel: str) -> bool:
+            return os.path.isfile(root / rel)
+
+        line = 1
+        try:
+            for cells in reader:
+                line = reader.line_num
+                if not cells or all(not c.strip() for c in cells):
+                    continue
+                where = f"{path}: line {line}"
+                if len(cells) != len(header):
+                    raise LinoLocError(f"{where}: {len(cells)} fields, header has {len(header)}")
+                vals = []
+                for col in ("x", "y", "theta"):
+                    cell = cells[idx[col]].strip()
+                    try:
+                        v = float(cell)
+                    except ValueError:
+                        raise LinoLocError(f"{where}, field '{col}': not a number ({cell!r})") from None
+                    if not math.isfinite(v):
+                        raise LinoLocError(f"{where}, field '{col}': not finite ({cell!r})")
+                    vals.append(v)
+                poses.append((vals[0], vals[1], vals[2]))
+                for col in _FILE_COLUMNS:
+                    cell = cells[idx[col]].strip() if col in idx else ""
+                    if not cell:
+                        if col == "image":
+                            raise LinoLocError(f"{where}, field 'image': empty")
+                        files[col].append(None)
+                        continue
+                    if not exists(cell):
+                        raise LinoLocError(f"{where}, field '{col}': file not found: {root / cell}")
+                    files[col].append(cell)
+                cond = cells[idx["condition"]].strip() if "condition" in idx else ""
+                conditions.append(cond or None)
+                st = cells[idx["stamp"]].strip() if "stamp" in idx else ""
+                if st:
+                    try:
+                        s = float(st)
+                    except ValueError:
+                        raise LinoLocError(f"{where}, field 'stamp': not a number ({st!r})") from None
+                    if not math.isfinite(s):
+                        raise LinoLocError(f"{where}, field 'stamp': not finite ({st!r})")
+                    stamps.append(s)
+                else:
+                    stamps.append(math.nan)
+        except csv.Error as exc:
+            raise LinoLocError(f"{path}: line {line + 1}: {exc}") from None
+        if not poses:
+            raise LinoLocError(f"{path}: no rows (an empty survey)")
+        return (
+            np.asarray(poses, dtype=np.float64).reshape(-1, 3),
+            files,
+            conditions,
+            np.asarray(stamps, dtype=np.float64),
+        )
+
+    # ----------------------------------------------------------------- access
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+    def __repr__(self) -> str:
+        return f"Dataset({str(self.root)!r}, name={self.meta.name!r}, n={len(self)})"
+
+    @property
+    def has_right(self) -> bool:
+        return any(f is not None for f in self._files["right"])
+
+    @property
+    def has_disparity(self) -> bool:
+        return any(f is not None for f in self._files["disparity"])
+
+    @property
+    def has_depth(self) -> bool:
+        return any(f is not None for f in self._files["depth"])
+
+    def image_path(self, i: int) -> Path:
+        """Path of image ``i`` (for bulk loaders)."""
+        return self.root / str(self._files["image"][i])
+
+    def file_path(self, kind: str, i: int) -> Path | None:
+        """Path of row ``i``'s ``image``/``right``/``disparity``/``depth`` file, or None."""
+        rel = self._files[kind][i]
+        return None if rel is None else self.root / rel
+
+    @staticmethod
+    def read_grey(path: Path | str) -> np.ndarray:
+        """Read an 8-bit image file as uint8 grey (colour converted); LinoLocError if unreadable."""
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise LinoLocError(f"{path}: unreadable image (not a PNG/JPEG, or corrupt)")
+        if img.dtype != np.uint8:  # 16-bit grey PNG: OpenCV keeps the depth
+            raise LinoLocError(f"{path}: expected an 8-bit image, got {img.dtype}")
+        return img
+
+    def _read_u16(self, path: Path) -> np.ndarray:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise LinoLocError(f"{path}: unreadable image (not a PNG, or corrupt)")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise LinoLocError(f"{path}: expected a 16-bit single-channel PNG, got {raw.dtype} {raw.shape}")
+        return raw
+
+    def image(self, i: int) -> np.ndarray:
+        """Image ``i`` as uint8 grey (H, W)."""
+        return self.read_grey(self.image_path(i))
+
+    def right(self, i: int) -> np.ndarray | None:
+        """Right image of the stereo pair as uint8 grey, or None."""
+        p = self.file_path("right", i)
+        return None if p is None else self.read_grey(p)
+
+    def depth(self, i: int) -> np.ndarray | None:
+        """Depth in metres (float32, NaN = no value), or None if the row has none."""
+        p = self.file_path("depth", i)
+        return None if p is None else decode_scaled_u16(self._read_u16(p), self.meta.depth_scale)
+
+    def disparity(self, i: int) -> np.ndarray | None:
+        """Disparity in pixels (float32, NaN = no value), or None if the row has none."""
+        p = self.file_path("disparity", i)
+        return None if p is None else decode_scaled_u16(self._read_u16(p), self.meta.disparity_scale)
+
+    def subset(self, indices: Sequence[int] | np.ndarray) -> Dataset:
+        """A view on the rows ``indices`` (same folder and meta; no files are copied)."""
+        ix = np.asarray(indices)
+        if ix.dtype == bool:
+            ix = np.flatnonzero(ix)
+        ix = ix.astype(np.int64).reshape(-1)
+        lst = [int(k) for k in ix]
+        return Dataset(
+            self.root,
+            self.meta,
+            self.poses[ix].copy(),
+            {k: [v[j] for j in lst] for k, v in self._files.items()},
+            [self.conditions[j] for j in lst],
+            self.stamps[ix].copy(),
+        )
+
+    def where(self, condition: str | None) -> Dataset:
+        """Rows recorded under ``condition`` (may be empty)."""
+        return self.subset([i for i, c in enumerate(self.conditions) if c == condition])

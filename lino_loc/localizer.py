@@ -1,0 +1,217 @@
+"""The Localizer: one object that turns (odometry, pan, image[, disparity]) into a pose estimate.
+
+It owns the appearance map's sensor models (one nearest-neighbour model per channel, section
+3), the odometry action model, the fusion rule (eq. 7 / 8) and the auxiliary particle filter
+(eq. 2-6). One call of :meth:`Localizer.update`:
+
+1. projects the image (and the disparity map, when the map has a disparity channel) through
+   the map's channels to feature vectors (eq. 1);
+2. builds each channel's J-nearest-neighbour pose mixture and fuses them as configured
+   (intensity alone uses J = ``sensor.j``; with disparity, ``fusion.j_intensity`` +
+   ``fusion.j_disparity``);
+3. runs one filter update with the odometry increment and the head's pan angle (the mixture
+   lives in camera poses, the particles are robot poses);
+4. returns the :class:`Estimate` of the robot pose.
+
+The map is duck-typed (the real one is ``lino_loc.appearance_map.AppearanceMap``): it needs
+``poses`` (N, 3) camera poses and ``channels``, a mapping from channel name ("intensity",
+optionally "disparity") to objects with ``features`` (N, d) and ``project(array) -> (d,)``.
+
+Usage::
+
+    loc = Localizer(appearance_map, LocalizerConfig())
+    est = loc.update((0.1, 0.0, 0.02), pan=0.0, image=img)
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from lino_loc.errors import LinoLocError
+from lino_loc.fusion import FusionConfig, fuse
+from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
+from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig, FreeSpace, State
+from lino_loc.sensor_model import (
+    Bounds,
+    NearestNeighbourSensorModel,
+    PoseMixture,
+    SensorModelConfig,
+)
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+
+class ChannelLike(Protocol):
+    features: Any
+
+    def project(self, image: np.ndarray) -> np.ndarray: ...
+
+
+class MapLike(Protocol):
+    poses: Any
+    channels: Mapping[str, ChannelLike]
+
+
+class LocalizerConfig(BaseModel):
+    """Everything the Localizer needs besides the map: action, sensor, filter and fusion."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    motion: MotionModelConfig = Field(default_factory=MotionModelConfig)
+    sensor: SensorModelConfig = Field(default_factory=SensorModelConfig)
+    filter: FilterConfig = Field(default_factory=FilterConfig)
+    fusion: FusionConfig = Field(default_factory=FusionConfig)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What one update returns: the robot pose in the map frame and how sure we are."""
+
+    stamp: float | None
+    pose: FloatArray  # (3,) x, y, theta of the robot
+    covariance: FloatArray  # (3, 3)
+    ess: float
+    n_particles: int
+    state: State
+    likelihood: float  # predictive log-likelihood of the last observation (nan: none)
+    cluster_weight: float = math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary (lists instead of arrays; nan likelihood becomes None)."""
+        return {
+            "stamp": self.stamp,
+            "pose": [float(v) for v in self.pose],
+            "covariance": [[float(v) for v in row] for row in self.covariance],
+            "ess": float(self.ess),
+            "n_particles": int(self.n_particles),
+            "state": self.state,
+            "likelihood": None if not math.isfinite(self.likelihood) else float(self.likelihood),
+            "cluster_weight": float(self.cluster_weight),
+        }
+
+
+class Localizer:
+    """The map, the models and the filter behind one ``update`` call (see module docstring)."""
+
+    def __init__(
+        self,
+        appearance_map: MapLike,
+        config: LocalizerConfig | None = None,
+        rng: np.random.Generator | None = None,
+        free_space: FreeSpace | None = None,
+    ) -> None:
+        self.config = config or LocalizerConfig()
+        self.map = appearance_map
+        poses = np.asarray(appearance_map.poses, dtype=np.float64)
+        channels = dict(appearance_map.channels)
+        if "intensity" not in channels:
+            raise LinoLocError(f"appearance map: no 'intensity' channel (has {sorted(channels)})")
+        self.bounds = Bounds.from_poses(poses, self.config.sensor.map_margin)
+        self.models: dict[str, NearestNeighbourSensorModel] = {
+            name: NearestNeighbourSensorModel(
+                poses,
+                np.asarray(ch.features, dtype=np.float64),
+                self.config.sensor,
+                j=min(self.config.sensor.j, poses.shape[0]),
+                bounds=self.bounds,
+            )
+            for name, ch in channels.items()
+            if name in ("intensity", "disparity")
+        }
+        self.channels = channels
+        seed_rng = rng if rng is not None else np.random.default_rng(self.config.filter.seed)
+        self.filter = AuxiliaryParticleFilter(
+            OdometryMotionModel(self.config.motion),
+            self.bounds,
+            self.config.filter,
+            free_space=free_space,
+            rng=seed_rng,
+        )
+        self.last_mixture: PoseMixture | None = None
+
+    # ----------------------------------------------------------------- observation
+
+    def observe(
+        self, image: np.ndarray | None, disparity: np.ndarray | None = None
+    ) -> PoseMixture | None:
+        """The (fused) sensor-model mixture over camera poses for an image and optional
+        disparity map; None when there is nothing to observe."""
+        fc = self.config.fusion
+        feats: dict[str, np.ndarray] = {}
+        if image is not None:
+            feats["intensity"] = np.asarray(
+                self.channels["intensity"].project(image), dtype=np.float64
+            )
+        if disparity is not None and "disparity" in self.models:
+            feats["disparity"] = np.asarray(
+                self.channels["disparity"].project(disparity), dtype=np.float64
+            )
+        for name in [n for n, y in feats.items() if not np.all(np.isfinite(y))]:
+            # e.g. a disparity map with too few valid pixels: that channel observes nothing
+            log.debug("channel %s: non-finite features, not used for this frame", name)
+            del feats[name]
+        if not feats:
+            return None
+        both = len(feats) == 2
+        j_of = {"intensity": fc.j_intensity, "disparity": fc.j_disparity}
+        mixtures = {
+            name: self.models[name].observe(y, j_of[name] if both else self.config.sensor.j)
+            for name, y in feats.items()
+        }
+        return fuse(mixtures, fc)
+
+    # ----------------------------------------------------------------- filter
+
+    def update(
+        self,
+        odometry_delta: ArrayLike,
+        pan: float,
+        image: np.ndarray | None,
+        disparity: np.ndarray | None = None,
+        stamp: float | None = None,
+    ) -> Estimate:
+        """One localization step: odometry increment (dx, dy, dtheta) in the robot frame since
+        the last update, the head's pan angle (rad) at the frame's time, the image (None when
+        the camera failed: prediction only) and the optional disparity map."""
+        mixture = self.observe(image, disparity)
+        self.last_mixture = mixture
+        self.filter.update(odometry_delta, float(pan), mixture)
+        return self.estimate(stamp)
+
+    def predict_only(self, odometry_delta: ArrayLike, stamp: float | None = None) -> Estimate:
+        """Propagate by odometry alone (the camera failed or no frame arrived)."""
+        return self.update(odometry_delta, 0.0, None, None, stamp)
+
+    def estimate(self, stamp: float | None = None) -> Estimate:
+        e = self.filter.estimate()
+        return Estimate(
+            stamp=stamp,
+            pose=e.pose,
+            covariance=e.covariance,
+            ess=e.ess,
+            n_particles=e.n_particles,
+            state=e.state,
+            likelihood=e.log_likelihood,
+            cluster_weight=e.cluster_weight,
+        )
+
+    def set_pose(self, mean: ArrayLike, cov: ArrayLike) -> None:
+        """Start tracking from a known robot pose with a Gaussian uncertainty."""
+        self.filter.set_pose(mean, cov)
+
+    def start_global(self) -> None:
+        """Forget the pose: uniform belief over the mapped area and all headings."""
+        self.filter.start_global()
+
+    def particles(self) -> tuple[FloatArray, FloatArray]:
+        """(robot poses (N, 3), normalized weights (N,)) for viewers."""
+        return self.filter.particles.copy(), self.filter.weights

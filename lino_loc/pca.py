@@ -1,0 +1,206 @@
+"""Principal component analysis for appearance maps: the projection ``W`` of eq. 1.
+
+Given N image vectors ``z_i`` (rows of X, D pixels each) the map keeps the mean image and
+the d leading principal directions ``W`` (rows orthonormal, d x D); a view is compressed to
+``y = W (z - mean)`` (eq. 1, with the mean subtracted as usual for PCA).
+
+Three ways to compute ``W`` from the centred data ``Xc = X - mean``:
+
+``randomized`` (the default)
+    Randomized SVD (Halko, Martinsson & Tropp 2011, Alg. 4.4 + 5.1): sketch the range of
+    Xc with a Gaussian test matrix of d + p columns (p = 10 oversampling), refine it with q
+    power iterations ``(Xc Xc^T)^q Xc Omega``, re-orthonormalising with QR after every
+    product (q = 7: appearance spectra decay slowly, and the iterations are cheap), then the
+    exact SVD of the small (d+p) x D matrix ``Q^T Xc``. Cost O(N D (d+p) (2q+2)) flops and
+    O((N + D)(d+p)) extra memory; the centring is implicit (``Xc M = X M - 1 (mean M)``),
+    so no centred copy of X is made.
+``gram``
+    Leading eigenpairs (LAPACK ``?syevx``) of the smaller Gram matrix: ``Xc Xc^T / N`` (N x N) when N <= D,
+    else the covariance ``Xc^T Xc / N`` (D x D); for the former ``W = (U^T Xc) / s``.
+    O(N^2 D + N^3) flops and an N x N matrix, exact up to the squared condition number.
+``svd``
+    numpy's full thin SVD of Xc: the reference, O(N D min(N, D)).
+
+Why randomized: on the lab-survey shape (N = 4000 images x D = 4800 pixels, low rank +
+noise) ``benchmarks/bench_map_build.py`` measures it one to two orders of magnitude faster
+than the full SVD and several times faster than the Gram route, with peak extra memory
+of a few MB instead of hundreds, while its subspace agrees with the exact one to
+within float32 round-off for the leading components (tests/test_pca.py). Only the d <= 20
+leading directions are ever kept, which is the regime randomized SVD is built for.
+
+``explained_variance[k]`` is the variance of the k-th feature over the map images,
+``s_k^2 / N``. Signs are made deterministic: the largest-magnitude coefficient of each
+component is positive, so every method returns the same W for a well-separated spectrum.
+
+Usage::
+
+    from lino_loc.pca import fit_pca
+    pca = fit_pca(X, 20)            # X: (N, D) float32
+    Y = pca.project(X)              # (N, 20) features, eq. 1
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+import numpy as np
+import scipy.linalg
+
+from lino_loc.errors import LinoLocError
+
+PcaMethod = Literal["randomized", "gram", "svd"]
+PCA_METHODS: tuple[str, ...] = get_args(PcaMethod)
+DEFAULT_OVERSAMPLES = 10  # plus n_components: the sketch has 2 d + 10 columns
+DEFAULT_POWER_ITERATIONS = 5
+
+
+@dataclass
+class PCA:
+    """A fitted projection: ``mean`` (D,), ``components`` (d, D) with orthonormal rows, and
+    ``explained_variance`` (d,), all float32."""
+
+    mean: np.ndarray
+    components: np.ndarray
+    explained_variance: np.ndarray
+
+    @property
+    def n_components(self) -> int:
+        return int(self.components.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return int(self.components.shape[1])
+
+    def project(self, X: np.ndarray) -> np.ndarray:
+        """eq. 1: ``y = W (z - mean)`` for one vector (D,) -> (d,) or rows (N, D) -> (N, d)."""
+        Z = np.asarray(X, dtype=np.float32)
+        if Z.shape[-1] != self.mean.shape[0]:
+            raise LinoLocError(f"PCA.project: vector length {Z.shape[-1]}, map expects {self.mean.shape[0]}")
+        return ((Z - self.mean) @ self.components.T).astype(np.float32, copy=False)
+
+    def reconstruct(self, Y: np.ndarray) -> np.ndarray:
+        """Back-projection ``mean + W^T y`` (for diagnostics)."""
+        return (np.asarray(Y, dtype=np.float32) @ self.components + self.mean).astype(np.float32)
+
+
+def _sign_fix(V: np.ndarray) -> np.ndarray:
+    """Flip each row so that its largest-magnitude entry is positive."""
+    idx = np.argmax(np.abs(V), axis=1)
+    signs = np.sign(V[np.arange(V.shape[0]), idx])
+    signs[signs == 0] = 1
+    return V * signs[:, None]
+
+
+def _randomized(
+    X: np.ndarray, mean: np.ndarray, d: int, oversamples: int, n_iter: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Top-d right singular vectors and values of ``X - mean`` (Halko et al. 2011)."""
+    n, D = X.shape
+    ell = min(d + oversamples, n, D)
+    rng = np.random.default_rng(seed)
+    dt = X.dtype
+    m = mean.astype(dt)
+
+    def a_mul(M: np.ndarray) -> np.ndarray:  # Xc @ M, (n, ell)
+        out = X @ M
+        out -= m @ M
+        return out
+
+    def at_mul(Q: np.ndarray) -> np.ndarray:  # Xc^T @ Q, (D, ell)
+        out = X.T @ Q
+        out -= np.outer(m, Q.sum(axis=0))
+        return out
+
+    omega = rng.standard_normal((D, ell)).astype(dt)
+    Q, _ = np.linalg.qr(a_mul(omega))
+    for _ in range(n_iter):
+        Z, _ = np.linalg.qr(at_mul(Q))
+        Q, _ = np.linalg.qr(a_mul(Z))
+    B = at_mul(Q).T  # (ell, D) = Q^T Xc
+    _, s, Vt = np.linalg.svd(B.astype(np.float64), full_matrices=False)
+    return Vt[:d], s[:d]
+
+
+def _top_eigh(G: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """The d largest eigenpairs of a symmetric matrix (LAPACK ?syevx on that index range)."""
+    n = G.shape[0]
+    return scipy.linalg.eigh(G, subset_by_index=[n - d, n - 1], driver="evx", overwrite_a=True)
+
+
+def _gram(X: np.ndarray, mean: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """Top-d right singular vectors and values of ``X - mean`` from the smaller Gram matrix."""
+    n, D = X.shape
+    Xc = X - mean.astype(X.dtype)
+    if n <= D:
+        G = (Xc @ Xc.T).astype(np.float64)
+        evals, U = _top_eigh(G, d)
+        order = np.argsort(evals)[::-1]
+        lam = np.clip(evals[order], 0.0, None)
+        s = np.sqrt(lam)
+        V = (U[:, order].T.astype(Xc.dtype) @ Xc).astype(np.float64)
+        # normalise rows (= divide by s, but robust for tiny s)
+        V /= np.maximum(np.linalg.norm(V, axis=1, keepdims=True), 1e-300)
+        return V, s
+    C = (Xc.T @ Xc).astype(np.float64)
+    evals, V = _top_eigh(C, d)
+    order = np.argsort(evals)[::-1]
+    return V[:, order].T, np.sqrt(np.clip(evals[order], 0.0, None))
+
+
+def fit_pca(
+    X: np.ndarray,
+    n_components: int,
+    method: PcaMethod = "randomized",
+    seed: int = 0,
+    *,
+    oversamples: int | None = None,
+    n_iter: int = DEFAULT_POWER_ITERATIONS,
+) -> PCA:
+    """Fit the d = ``n_components`` leading principal directions of the rows of X (N, D).
+
+    X is used in its own precision when float64, else converted to float32. Needs
+    N >= 2 and d <= min(N - 1, D) (centred data have rank at most N - 1).
+    ``oversamples`` (default d + 10) and ``n_iter`` (default 5) tune the randomized method.
+    """
+    X = np.asarray(X)
+    if X.ndim != 2:
+        raise LinoLocError(f"fit_pca: expected a 2-D (N, D) matrix, got shape {X.shape}")
+    if X.dtype != np.float64:
+        X = X.astype(np.float32, copy=False)
+    n, D = X.shape
+    d = int(n_components)
+    if d < 1:
+        raise LinoLocError(f"fit_pca: n_components must be >= 1, got {d}")
+    if n < 2 or d > min(n - 1, D):
+        raise LinoLocError(
+            f"fit_pca: {d} components asked but {n} images of {D} pixels allow at most {max(min(n - 1, D), 0)}"
+        )
+    if not np.all(np.isfinite(X)):
+        raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
+    mean = X.mean(axis=0, dtype=np.float64)
+    if method == "randomized":
+        p = d + DEFAULT_OVERSAMPLES if oversamples is None else int(oversamples)
+        V, s = _randomized(X, mean, d, p, n_iter, seed)
+    elif method == "gram":
+        V, s = _gram(X, mean, d)
+    elif method == "svd":
+        Xc = X - mean.astype(X.dtype)
+        _, s_all, Vt = np.linalg.svd(Xc, full_matrices=False)
+        V, s = Vt[:d], s_all[:d]
+    else:
+        raise LinoLocError(f"fit_pca: unknown method {method!r} (choose from {', '.join(PCA_METHODS)})")
+    V = _sign_fix(np.asarray(V, dtype=np.float64))
+    return PCA(
+        mean=mean.astype(np.float32),
+        components=np.ascontiguousarray(V, dtype=np.float32),
+        explained_variance=(np.asarray(s, dtype=np.float64) ** 2 / n).astype(np.float32),
+    )
+
+
+def principal_angles(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Principal angles (radians, ascending) between the row spaces of A (k, D) and B (l, D)."""
+    qa, _ = np.linalg.qr(np.asarray(A, dtype=np.float64).T)
+    qb, _ = np.linalg.qr(np.asarray(B, dtype=np.float64).T)
+    cos = np.linalg.svd(qa.T @ qb, compute_uv=False)
+    return np.arccos(np.clip(cos, -1.0, 1.0))

@@ -1,0 +1,485 @@
+"""Appearance sensor model: the J nearest map entries as a mixture of kernels in pose space.
+
+For an observed feature vector ``y`` (eq. 1) the model takes the J map entries whose features
+are nearest to ``y`` and approximates the sensor model by the mixture (paper, section 3 and
+eq. 8 for one channel; the paper's ref. [12]; Vlassis, Terwijn and Kroese, "Auxiliary
+particle filter robot localization from high-dimensional sensor observations", ICRA 2002)
+
+    p(y | x)  ~  sum_j lambda_j phi(x | x_j)
+
+where ``x_j`` are the (camera) poses of those map entries, ``lambda_j`` weights that favour
+the closer feature vectors, and ``phi`` a kernel in pose space: an isotropic Gaussian of
+width ``sigma_xy`` in (x, y) times a von Mises density of concentration
+``kappa = 1 / sigma_theta^2`` in theta, with the angle difference wrapped. Strictly the
+mixture is the inverse model p(x | y); it is proportional to p(y | x) when the map samples the
+pose space uniformly (Bayes with a flat prior over the map), which a grid survey does.
+
+The kernel widths come from configuration; the feature weights are
+
+    lambda_j = softmax_j( -d_j^2 / (2 s^2) ),  d_j = |y - y_j|,
+
+with an adaptive scale ``s`` = ``lambda_scale_factor`` times the median (default) or the
+smallest of the J neighbour distances ("uniform" gives lambda_j = 1/J). Making ``s`` relative
+to the neighbour distances keeps the weights meaningful whatever the number of features and
+the preprocessing (distances in feature space have no fixed unit).
+
+An optional outlier component (weight ``outlier_weight``, a uniform density over the mapped
+area and all headings) keeps the model from vanishing away from the J poses, so that one
+wrong match (an unmodelled change in the scene) does not wipe out the belief.
+
+Everything is kept in log space. A :class:`PoseMixture` can be evaluated at any set of poses
+(``log_pdf``) and sampled (``sample``), which is what global localization and kidnap recovery
+use.
+
+Usage::
+
+    model = NearestNeighbourSensorModel(map_poses, map_features, SensorModelConfig(j=10))
+    mixture = model.observe(y)
+    log_lik = mixture.log_pdf(camera_pose(particles, pan))
+    seeds = mixture.sample(100, rng)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.special import i0e
+
+from lino_loc.errors import LinoLocError
+from lino_loc.poses import wrap_angle
+from lino_loc.resampling import logsumexp
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+LOG_2PI = math.log(2.0 * math.pi)
+AUTO_KDTREE_MIN_ENTRIES = 2000  # below this brute force is always fast enough (< 0.1 ms)
+
+
+def log_von_mises_norm(kappa: ArrayLike) -> FloatArray:
+    """log(2 pi I0(kappa)), computed stably with the scaled Bessel function i0e."""
+    k = np.asarray(kappa, dtype=np.float64)
+    return LOG_2PI + np.log(i0e(k)) + k
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Axis-aligned box of the mapped area, metres (all headings are allowed)."""
+
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+
+    @property
+    def area(self) -> float:
+        return max(self.x_max - self.x_min, 1e-9) * max(self.y_max - self.y_min, 1e-9)
+
+    @property
+    def log_uniform_density(self) -> float:
+        """log of the uniform density over the box and all headings, 1 / (area * 2 pi)."""
+        return -math.log(self.area) - LOG_2PI
+
+    def sample(self, n: int, rng: np.random.Generator) -> FloatArray:
+        """n poses uniform over the box and all headings."""
+        u = rng.random((n, 3))
+        return np.column_stack(
+            [
+                self.x_min + u[:, 0] * (self.x_max - self.x_min),
+                self.y_min + u[:, 1] * (self.y_max - self.y_min),
+                -np.pi + u[:, 2] * 2.0 * np.pi,
+            ]
+        )
+
+    def contains(self, xy: ArrayLike) -> NDArray[np.bool_]:
+        p = np.asarray(xy, dtype=np.float64)
+        return (
+            (p[..., 0] >= self.x_min)
+            & (p[..., 0] <= self.x_max)
+            & (p[..., 1] >= self.y_min)
+            & (p[..., 1] <= self.y_max)
+        )
+
+    @classmethod
+    def from_poses(cls, poses: ArrayLike, margin: float = 0.0) -> Bounds:
+        p = np.asarray(poses, dtype=np.float64)
+        return cls(
+            float(p[:, 0].min() - margin),
+            float(p[:, 0].max() + margin),
+            float(p[:, 1].min() - margin),
+            float(p[:, 1].max() + margin),
+        )
+
+
+@dataclass(frozen=True)
+class PoseMixture:
+    """A density over poses: sum_k w_k N(x,y; mu_k, sigma_xy_k^2 I) VM(theta; mu_k, 1/sigma_theta_k^2)
+    plus an optional uniform outlier component over ``bounds``, times exp(``log_scale``).
+
+    ``log_weights`` (K,) and ``outlier_log_weight`` together sum to one (in linear space), so
+    the mixture part is a normalized density in (x, y, theta); ``log_scale`` is a constant
+    factor (the normalizer of a product of mixtures, eq. 7) that ``log_pdf`` includes and
+    ``sample`` ignores.
+    """
+
+    poses: FloatArray
+    log_weights: FloatArray
+    sigma_xy: FloatArray
+    sigma_theta: FloatArray
+    outlier_log_weight: float = -math.inf
+    bounds: Bounds | None = None
+    log_scale: float = 0.0
+    neighbours: IntArray | None = field(default=None, compare=False)
+
+    @classmethod
+    def create(
+        cls,
+        poses: ArrayLike,
+        log_weights: ArrayLike,
+        sigma_xy: ArrayLike,
+        sigma_theta: ArrayLike,
+        outlier_weight: float = 0.0,
+        bounds: Bounds | None = None,
+        log_scale: float = 0.0,
+        neighbours: ArrayLike | None = None,
+    ) -> PoseMixture:
+        """Build a mixture; normalizes the component weights to ``1 - outlier_weight``."""
+        p = np.atleast_2d(np.asarray(poses, dtype=np.float64))
+        k = p.shape[0]
+        lw = np.asarray(log_weights, dtype=np.float64).reshape(k)
+        sxy = np.broadcast_to(np.asarray(sigma_xy, dtype=np.float64), (k,)).copy()
+        sth = np.broadcast_to(np.asarray(sigma_theta, dtype=np.float64), (k,)).copy()
+        if np.any(sxy <= 0) or np.any(sth <= 0):
+            raise ValueError("kernel widths must be positive")
+        if not 0.0 <= outlier_weight < 1.0:
+            raise ValueError("outlier_weight must be in [0, 1)")
+        if outlier_weight > 0.0 and bounds is None:
+            raise ValueError("an outlier component needs the bounds of the mapped area")
+        lw = lw - logsumexp(lw) + math.log1p(-outlier_weight)
+        ow = math.log(outlier_weight) if outlier_weight > 0.0 else -math.inf
+        nb = None if neighbours is None else np.asarray(neighbours, dtype=np.int64)
+        return cls(p, lw, sxy, sth, ow, bounds, float(log_scale), nb)
+
+    @property
+    def n_components(self) -> int:
+        return int(self.poses.shape[0])
+
+    @property
+    def kappa(self) -> FloatArray:
+        return 1.0 / self.sigma_theta**2
+
+    @cached_property
+    def _psi(self) -> FloatArray:
+        """(6, K) coefficients of the log-kernels (see :meth:`component_log_pdf`)."""
+        mu = self.poses
+        s2 = self.sigma_xy**2
+        kappa = self.kappa
+        inv = 1.0 / s2
+        const = (
+            self.log_weights
+            - (LOG_2PI + np.log(s2))
+            - (LOG_2PI + np.log(i0e(kappa)))
+            - kappa
+            - 0.5 * inv * (mu[:, 0] ** 2 + mu[:, 1] ** 2)
+        )
+        return np.stack(
+            [
+                mu[:, 0] * inv,
+                mu[:, 1] * inv,
+                kappa * np.cos(mu[:, 2]),
+                kappa * np.sin(mu[:, 2]),
+                -0.5 * inv,
+                const,
+            ]
+        )
+
+    def _component_terms(self, x: FloatArray) -> FloatArray:
+        """(K, M) log of w_k phi_k(x_m), components along the first axis (fast reductions)."""
+        phi = np.empty((6, x.shape[0]))
+        phi[0:2] = x[:, 0:2].T
+        np.cos(x[:, 2], out=phi[2])
+        np.sin(x[:, 2], out=phi[3])
+        np.multiply(phi[0], phi[0], out=phi[4])
+        phi[4] += phi[1] * phi[1]
+        phi[5] = 1.0
+        # einsum, not a BLAS product: a threaded BLAS took 40 ms instead of 0.3 ms for
+        # M = 10000 on this shared 2-core machine.
+        return np.einsum("ik,im->km", self._psi, phi)
+
+    def component_log_pdf(self, poses: ArrayLike) -> FloatArray:
+        """(M, K) log of w_k phi_k(x_m), without outlier and scale.
+
+        Written as one (K, 6) x (6, M) product: with s_k = sigma_xy_k and kappa_k,
+        log w_k phi_k(x) = -|p - m_k|^2 / (2 s_k^2) + kappa_k cos(theta - mu_k) + const_k, and
+        |p - m|^2 = |p|^2 - 2 p.m + |m|^2, cos(t - mu) = cos t cos mu + sin t sin mu, so the
+        M x K cosines and distances cost one small matrix product (the wrap of the angle
+        difference is implicit in the cosine).
+        """
+        x = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        return self._component_terms(x).T
+
+    def log_pdf(self, poses: ArrayLike) -> FloatArray:
+        """Log density at poses (M, 3) -> (M,), including the outlier component and log_scale."""
+        x = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        c = self._component_terms(x)
+        top = c.max(axis=0)
+        c -= top
+        np.exp(c, out=c)
+        lp = np.log(c.sum(axis=0))
+        lp += top
+        if self.outlier_log_weight > -math.inf:
+            assert self.bounds is not None
+            inside = self.bounds.contains(x[:, :2])
+            lo = np.where(
+                inside, self.outlier_log_weight + self.bounds.log_uniform_density, -np.inf
+            )
+            lp = np.logaddexp(lp, lo)
+        if self.log_scale:
+            lp += self.log_scale
+        return lp
+
+    def pdf(self, poses: ArrayLike) -> FloatArray:
+        """Density at poses (M, 3) -> (M,), consistent with ``sample`` when log_scale == 0."""
+        return np.exp(self.log_pdf(poses))
+
+    def sample(self, n: int, rng: np.random.Generator) -> FloatArray:
+        """n poses drawn from the normalized mixture (log_scale ignored) -> (n, 3)."""
+        lw = self.log_weights
+        if self.outlier_log_weight > -math.inf:
+            lw = np.append(lw, self.outlier_log_weight)
+        w = np.exp(lw - logsumexp(lw))
+        comp = rng.choice(w.size, size=n, p=w / w.sum())
+        out = np.empty((n, 3))
+        kernel = comp < self.n_components
+        kc = comp[kernel]
+        m = int(kernel.sum())
+        mu = self.poses[kc]
+        out[kernel, 0] = mu[:, 0] + self.sigma_xy[kc] * rng.standard_normal(m)
+        out[kernel, 1] = mu[:, 1] + self.sigma_xy[kc] * rng.standard_normal(m)
+        out[kernel, 2] = wrap_angle(rng.vonmises(mu[:, 2], self.kappa[kc]))
+        if m < n:
+            assert self.bounds is not None
+            out[~kernel] = self.bounds.sample(n - m, rng)
+        return out
+
+    def with_log_weight(self, log_w: float) -> PoseMixture:
+        """The same mixture with every weight (components and outlier) multiplied by exp(log_w)."""
+        return PoseMixture(
+            self.poses,
+            self.log_weights + log_w,
+            self.sigma_xy,
+            self.sigma_theta,
+            self.outlier_log_weight + log_w,
+            self.bounds,
+            self.log_scale,
+            self.neighbours,
+        )
+
+
+class SensorModelConfig(BaseModel):
+    """Configuration of the nearest-neighbour sensor model (design.md section 2)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    j: int = Field(10, ge=1, description="number of nearest map entries J")
+    sigma_xy: float = Field(0.35, gt=0.0, description="kernel width in x and y, metres")
+    sigma_theta: float = Field(0.3, gt=0.0, description="kernel width in theta, radians")
+    lambda_scale: Literal["median", "nearest", "uniform"] = "median"
+    lambda_scale_factor: float = Field(1.0, gt=0.0)
+    outlier_weight: float = Field(
+        0.01, ge=0.0, lt=1.0, description="weight of the uniform component"
+    )
+    map_margin: float = Field(0.5, ge=0.0, description="margin (m) added around the map poses")
+    index: Literal["brute", "kdtree", "auto"] = Field(
+        "auto",
+        description="J-nearest search: vectorized brute force, scipy cKDTree, or auto (measure "
+        "both on the map at construction, take the tree only if it is clearly faster)",
+    )
+
+
+def lambda_log_weights(dist2: ArrayLike, scale: str = "median", factor: float = 1.0) -> FloatArray:
+    """log lambda_j = log softmax(-d_j^2 / (2 s^2)) over the last axis (see module docstring)."""
+    d2 = np.asarray(dist2, dtype=np.float64)
+    if scale == "uniform":
+        return np.full(d2.shape, -math.log(d2.shape[-1]))
+    if scale == "median":  # (np.median costs ~40 us per call; J is small, so sort)
+        srt = np.sort(d2, axis=-1)
+        k = d2.shape[-1]
+        s2 = 0.5 * (srt[..., (k - 1) // 2 : (k - 1) // 2 + 1] + srt[..., k // 2 : k // 2 + 1])
+    elif scale == "nearest":
+        s2 = np.min(d2, axis=-1, keepdims=True)
+    else:
+        raise ValueError(f"unknown lambda scale {scale!r}")
+    s2 = factor**2 * s2
+    # Guard a zero scale (exact match): fall back to the largest distance, then to uniform.
+    s2 = np.where(s2 > 0, s2, np.max(d2, axis=-1, keepdims=True))
+    logits = np.where(s2 > 0, -d2 / (2.0 * np.where(s2 > 0, s2, 1.0)), 0.0)
+    return logits - logsumexp(logits, axis=-1, keepdims=True)
+
+
+class NearestNeighbourSensorModel:
+    """J-nearest-neighbour appearance sensor model over one map channel (design.md section 2).
+
+    ``map_poses`` (N, 3) are CAMERA poses; evaluate the mixtures at
+    ``camera_pose(robot_particles, pan)``.
+    """
+
+    def __init__(
+        self,
+        map_poses: ArrayLike,
+        map_features: ArrayLike,
+        config: SensorModelConfig | None = None,
+        j: int | None = None,
+        bounds: Bounds | None = None,
+    ) -> None:
+        self.config = config or SensorModelConfig()
+        self.poses = np.asarray(map_poses, dtype=np.float64)
+        self.features = np.ascontiguousarray(np.asarray(map_features, dtype=np.float64))
+        if self.poses.ndim != 2 or self.poses.shape[1] != 3:
+            raise LinoLocError(f"map poses: expected shape (N, 3), got {self.poses.shape}")
+        if self.features.ndim != 2 or self.features.shape[0] != self.poses.shape[0]:
+            raise LinoLocError(
+                f"map features: expected shape ({self.poses.shape[0]}, d), got {self.features.shape}"
+            )
+        self.j = int(j if j is not None else self.config.j)
+        if not 1 <= self.j <= self.poses.shape[0]:
+            raise LinoLocError(
+                f"sensor model j={self.j}: must be between 1 and the map size {self.poses.shape[0]}"
+            )
+        self.bounds = bounds or Bounds.from_poses(self.poses, self.config.map_margin)
+        self._sqnorm = np.einsum("ij,ij->i", self.features, self.features)
+        self._tree = None
+        self.index_kind = "brute"
+        if self.config.index == "kdtree" or (
+            self.config.index == "auto" and self.poses.shape[0] >= AUTO_KDTREE_MIN_ENTRIES
+        ):
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.features)
+            self.index_kind = "kdtree"
+            if self.config.index == "auto" and not self._tree_pays():
+                self._tree = None
+                self.index_kind = "brute"
+
+    def _tree_pays(self, n_probe: int = 24) -> bool:
+        """Time both searches on probe queries (map features plus noise, fixed seed).
+
+        Measured (this 2-core machine, J = 10, 20 features, median per query): with PCA-like
+        features (decaying variances) the tree wins, 0.08-0.11 vs 0.16-0.23 ms at 4000 entries
+        and 0.3-0.5 vs 1.0 ms at 40000; with 20 equally-varying features it loses badly at
+        40000 entries (3.6-4.1 vs 0.9-1.2 ms). The data decide, so "auto" measures.
+        """
+        import time
+
+        rng = np.random.default_rng(12345)
+        rows = rng.integers(0, self.features.shape[0], n_probe)
+        probes = self.features[rows] + 0.25 * self.features.std(axis=0) * rng.standard_normal(
+            (n_probe, self.dim)
+        )
+        tree, timings = self._tree, {}
+        for kind in ("kdtree", "brute", "kdtree", "brute"):
+            self._tree = tree if kind == "kdtree" else None
+            t0 = time.perf_counter()
+            for q in probes:
+                self.neighbours(q)
+            timings[kind] = min(timings.get(kind, math.inf), time.perf_counter() - t0)
+        self._tree = tree
+        return timings["kdtree"] < 0.8 * timings["brute"]
+
+    @property
+    def dim(self) -> int:
+        return int(self.features.shape[1])
+
+    def neighbours(self, y: ArrayLike, j: int | None = None) -> tuple[IntArray, FloatArray]:
+        """The J nearest map entries to each observation: y (d,) or (B, d) ->
+        (indices (B, J), squared distances (B, J)), sorted by distance. ``j`` overrides J."""
+        q = np.atleast_2d(np.asarray(y, dtype=np.float64))
+        if q.shape[1] != self.dim:
+            raise LinoLocError(f"observed features: expected {self.dim} values, got {q.shape[1]}")
+        if not np.all(np.isfinite(q)):
+            raise LinoLocError("observed features: contain NaN or infinite values")
+        j = self.j if j is None else min(int(j), self.poses.shape[0])
+        if self._tree is not None:
+            d, idx = self._tree.query(q, k=j)
+            d2 = np.asarray(d, dtype=np.float64).reshape(q.shape[0], j) ** 2
+            return np.asarray(idx, dtype=np.int64).reshape(q.shape[0], j), d2
+        # |f|^2 - 2 f.y + |y|^2; clip round-off below zero. For a few queries einsum (no BLAS)
+        # is used: a threaded BLAS matrix-vector product measured 8 ms instead of 0.6 ms for
+        # 40000 x 20 on this (shared, 2-core) machine.
+        if q.shape[0] <= 8:
+            cross = np.einsum("bj,nj->bn", q, self.features)
+        else:
+            cross = q @ self.features.T
+        d2 = self._sqnorm[None, :] - 2.0 * cross + np.einsum("ij,ij->i", q, q)[:, None]
+        np.maximum(d2, 0.0, out=d2)
+        n = d2.shape[1]
+        if j < n:
+            part = np.argpartition(d2, j - 1, axis=1)[:, :j]
+        else:
+            part = np.broadcast_to(np.arange(n), (q.shape[0], n))
+        pd2 = np.take_along_axis(d2, part, axis=1)
+        order = np.argsort(pd2, axis=1)
+        return np.take_along_axis(part, order, axis=1).astype(np.int64), np.take_along_axis(
+            pd2, order, axis=1
+        )
+
+    def observe(self, y: ArrayLike, j: int | None = None) -> PoseMixture:
+        """The sensor model for one observed feature vector y (d,) as a PoseMixture."""
+        idx, d2 = self.neighbours(y, j)
+        return self.mixture_from_neighbours(idx[0], d2[0])
+
+    def log_likelihood_matrix(
+        self, y: ArrayLike, camera_poses: ArrayLike, j: int | None = None
+    ) -> FloatArray:
+        """log p(y_b | x_m) for many observations at once: y (B, d), camera poses (M, 3) -> (B, M).
+
+        Row b equals ``self.observe(y[b], j).log_pdf(camera_poses)``; vectorized for the
+        active-vision search (issue 6), which needs the sensor model of every predicted
+        observation at every particle.
+        """
+        c = self.config
+        idx, d2 = self.neighbours(y, j)
+        bsz, k = idx.shape
+        lam = lambda_log_weights(d2, c.lambda_scale, c.lambda_scale_factor)
+        ow = c.outlier_weight
+        mix = PoseMixture(
+            self.poses[idx.reshape(-1)],
+            (lam + math.log1p(-ow)).reshape(-1),
+            np.full(bsz * k, c.sigma_xy),
+            np.full(bsz * k, c.sigma_theta),
+        )
+        x = np.asarray(camera_poses, dtype=np.float64).reshape(-1, 3)
+        terms = mix._component_terms(x).reshape(bsz, k, x.shape[0])
+        top = terms.max(axis=1, keepdims=True)
+        terms -= top
+        np.exp(terms, out=terms)
+        out = np.log(terms.sum(axis=1)) + top[:, 0, :]
+        if ow > 0.0:
+            inside = self.bounds.contains(x[:, :2])
+            lo = np.where(inside, math.log(ow) + self.bounds.log_uniform_density, -np.inf)
+            out = np.logaddexp(out, lo[None, :])
+        return out
+
+    def mixture_from_neighbours(self, idx: ArrayLike, dist2: ArrayLike) -> PoseMixture:
+        """The mixture defined by given neighbour indices (J,) and squared feature distances (J,)."""
+        c = self.config
+        ii = np.asarray(idx, dtype=np.int64)
+        lam = lambda_log_weights(dist2, c.lambda_scale, c.lambda_scale_factor)  # normalized
+        k = ii.size
+        ow = c.outlier_weight
+        return PoseMixture(
+            self.poses[ii],
+            lam + math.log1p(-ow),
+            np.full(k, c.sigma_xy),
+            np.full(k, c.sigma_theta),
+            math.log(ow) if ow > 0.0 else -math.inf,
+            self.bounds,
+            0.0,
+            ii,
+        )

@@ -1,0 +1,137 @@
+"""`lino-loc map build` and `lino-loc map info`: appearance maps (design.md 4.3, eq. 1).
+
+    lino-loc map build DATASET --out MAP [--features 20] [--preprocess none|histeq|gradient]
+                       [--size 80x60] [--condition tube] [--method randomized|gram|svd]
+                       [--channels intensity[,disparity]] [--json]
+    lino-loc map info MAP [--json]
+
+A malformed dataset folder or a bad map file is a user error: one line on stderr, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+
+from lino_loc.appearance_map import DEFAULT_FEATURES, DEFAULT_SIZE, AppearanceMap, build_map
+from lino_loc.dataset import Dataset
+from lino_loc.pca import PCA_METHODS
+from lino_loc.preprocessing import PREPROCESS_METHODS
+from services.progress import Progress
+
+log = logging.getLogger("lino_loc.map")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 80x60, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return w, h
+
+
+def _channels(text: str) -> tuple[str, ...]:
+    chans = tuple(c.strip() for c in text.split(",") if c.strip())
+    if "intensity" not in chans or any(c not in ("intensity", "disparity") for c in chans):
+        raise argparse.ArgumentTypeError(f"channels: 'intensity' or 'intensity,disparity', got {text!r}")
+    return chans
+
+
+def _build(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    ds = Dataset.open(args.dataset)
+    bar = Progress("map build")
+    try:
+        amap = build_map(
+            ds,
+            n_features=args.features,
+            preprocess=args.preprocess,
+            size=args.size,
+            condition=args.condition,
+            progress=bar.update,
+            method=args.method,
+            channels=args.channels,
+        )
+    finally:
+        bar.close()
+    path = amap.save(args.out)
+    elapsed = time.perf_counter() - t0
+    summary = {
+        "map": str(path),
+        "images": len(amap),
+        "features": args.features,
+        "preprocess": args.preprocess,
+        "size": list(args.size),
+        "channels": sorted(amap.channels),
+        "seconds": round(elapsed, 3),
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"wrote {path}: {len(amap)} images, {args.features} features, "
+            f"{args.preprocess}, {args.size[0]}x{args.size[1]}, channels "
+            f"{','.join(sorted(amap.channels))} in {elapsed:.1f} s",
+            file=sys.stderr,
+        )
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    info = AppearanceMap.load(args.map).info()
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    cam = info["camera"]
+    lines = [
+        f"map        {info['file']}",
+        f"format     lino-loc-map v{info['format_version']} (lino-loc {info['lino_loc_version']}), created {info['created']}",
+        f"dataset    {info['name']} ({info['source']})" + (f", condition {info['condition']}" if info["condition"] else ""),
+        f"images     {info['n_images']}, x {info['extent']['x'][0]:.2f}..{info['extent']['x'][1]:.2f} m, "
+        f"y {info['extent']['y'][0]:.2f}..{info['extent']['y'][1]:.2f} m",
+        f"camera     {cam['width']}x{cam['height']} fx {cam['fx']:.1f} fy {cam['fy']:.1f}"
+        + (f" baseline {cam['baseline_m']} m" if cam.get("baseline_m") else ""),
+    ]
+    for name, ch in info["channels"].items():
+        frac = f", {100 * ch['variance_fraction']:.1f}% of the variance" if "variance_fraction" in ch else ""
+        lines.append(
+            f"channel    {name}: {ch['n_features']} features, preprocess {ch['preprocess']}, "
+            f"{ch['size'][0]}x{ch['size'][1]}, {ch['method']}{frac}"
+        )
+    lines.append(f"sha256     {info['sha256']}")
+    print("\n".join(lines))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("map", help="build or inspect an appearance map")
+    msub = parser.add_subparsers(dest="map_command", metavar="ACTION", parser_class=type(parser))
+    msub.required = True
+
+    p = msub.add_parser("build", help="build an appearance map file from a dataset folder")
+    p.add_argument("dataset", help="dataset folder (design.md 4.2)")
+    p.add_argument("--out", required=True, help="map file to write (.npz)")
+    p.add_argument("--features", type=int, default=DEFAULT_FEATURES, help="PCA features per image (default %(default)s)")
+    p.add_argument("--preprocess", choices=PREPROCESS_METHODS, default="none", help="image preprocessing (default %(default)s)")
+    p.add_argument(
+        "--size", type=_size, default=DEFAULT_SIZE, metavar="WxH",
+        help=f"working image size after area averaging (default {DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]})",
+    )
+    p.add_argument("--condition", default=None, help="use only the rows of this condition (e.g. tube)")
+    p.add_argument("--method", choices=PCA_METHODS, default="randomized", help="PCA algorithm (default %(default)s)")
+    p.add_argument(
+        "--channels", type=_channels, default=("intensity",), metavar="LIST",
+        help="intensity or intensity,disparity (default intensity)",
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
+    p.set_defaults(func=_build)
+
+    p = msub.add_parser("info", help="print what a map file holds")
+    p.add_argument("map", help="map file")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=_info)

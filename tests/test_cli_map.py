@@ -1,0 +1,85 @@
+"""`lino-loc map build` / `map info`: exit codes, JSON output, one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import services.cli as cli
+from lino_loc.dataset import CameraInfo, DatasetMeta, DatasetWriter
+
+
+@pytest.fixture(autouse=True)
+def only_map_commands(monkeypatch: pytest.MonkeyPatch) -> None:
+    # run the real CLI (parser, error handling, exit codes) with just this command group,
+    # so the test does not depend on the other command modules
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("services.commands.map",))
+
+
+@pytest.fixture
+def dataset(tmp_path: Path) -> Path:
+    rng = np.random.default_rng(0)
+    cam = CameraInfo(width=24, height=18, fx=20.0, fy=20.0, cx=12.0, cy=9.0)
+    root = tmp_path / "ds"
+    with DatasetWriter(root, DatasetMeta(name="cli", camera=cam)) as w:
+        for i in range(12):
+            w.add(rng.integers(0, 256, (18, 24), dtype=np.uint8), (0.5 * i, 0.0, 0.0), condition="tube")
+    return root
+
+
+def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    try:
+        code = cli.main(list(argv))
+    except SystemExit as exc:  # argparse usage errors
+        code = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_build_and_info(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out_map = tmp_path / "m.npz"
+    code, out, err = _run(
+        capsys, "map", "build", str(dataset), "--out", str(out_map), "--features", "5",
+        "--preprocess", "gradient", "--size", "12x9", "--condition", "tube", "--json",
+    )
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["images"] == 12 and summary["size"] == [12, 9] and out_map.is_file()
+
+    code, out, err = _run(capsys, "map", "info", str(out_map), "--json")
+    assert code == 0
+    assert len(out.strip().splitlines()) == 1  # exactly one JSON object
+    info = json.loads(out)
+    assert info["n_images"] == 12 and info["condition"] == "tube"
+    ch = info["channels"]["intensity"]
+    assert ch["n_features"] == 5 and ch["preprocess"] == "gradient" and ch["size"] == [12, 9]
+
+    code, out, _ = _run(capsys, "map", "info", str(out_map))
+    assert code == 0 and "intensity: 5 features, preprocess gradient, 12x9" in out
+
+
+def test_bad_map_files_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "notes.txt").write_text("not a map")
+    for path in (tmp_path / "notes.txt", tmp_path / "missing.npz"):
+        code, out, err = _run(capsys, "map", "info", str(path))
+        assert code == 2 and out == ""
+        assert len(err.strip().splitlines()) == 1 and str(path) in err and "Traceback" not in err
+
+
+def test_malformed_dataset_exit_2(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (dataset / "poses.csv").write_text("image,x,y\nimages/000000.png,0,0\n")
+    code, _, err = _run(capsys, "map", "build", str(dataset), "--out", str(tmp_path / "m.npz"))
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and "poses.csv" in err and "theta" in err
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_bad_arguments_exit_2(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out_map = str(tmp_path / "m.npz")
+    for extra in (["--size", "80by60"], ["--preprocess", "sharpen"], ["--features", "50"], ["--condition", "dusk"]):
+        code, _, err = _run(capsys, "map", "build", str(dataset), "--out", out_map, *extra)
+        assert code == 2, extra
+        assert len(err.strip().splitlines()) == 1, err

@@ -1,0 +1,284 @@
+"""Auxiliary particle filter: Kalman-filter agreement, initial belief, estimate, kidnap recovery."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
+from lino_loc.particle_filter import (
+    AuxiliaryParticleFilter,
+    FilterConfig,
+    apf_step,
+    cluster_labels,
+    weighted_pose_stats,
+)
+from lino_loc.poses import camera_pose, compose, wrap_angle
+from lino_loc.resampling import effective_sample_size, systematic
+from lino_loc.sensor_model import Bounds, NearestNeighbourSensorModel, SensorModelConfig
+
+# --------------------------------------------------------------------- linear Gaussian vs KF
+
+A, Q, R, P0 = 0.9, 0.5, 0.3, 2.0
+
+
+def _kalman(ys):
+    m, p, ll = 0.0, P0, 0.0
+    means, variances, lls = [], [], []
+    for t, y in enumerate(ys):
+        if t > 0:
+            m, p = A * m, A * A * p + Q
+        s = p + R
+        ll = -0.5 * (math.log(2 * math.pi * s) + (y - m) ** 2 / s)
+        k = p / s
+        m, p = m + k * (y - m), (1 - k) * p
+        means.append(m)
+        variances.append(p)
+        lls.append(ll)
+    return np.array(means), np.array(variances), np.array(lls)
+
+
+@pytest.mark.parametrize("beta", [1.0, 0.5, 0.0])
+def test_apf_matches_kalman_filter_on_linear_gaussian_model(beta: float) -> None:
+    rng = np.random.default_rng(11)
+    x, ys = rng.normal(0, math.sqrt(P0)), []
+    for t in range(20):
+        if t > 0:
+            x = A * x + rng.normal(0, math.sqrt(Q))
+        ys.append(x + rng.normal(0, math.sqrt(R)))
+    km, kv, kll = _kalman(ys)
+
+    n = 6000
+    prng = np.random.default_rng(5)
+    parts = prng.normal(0, math.sqrt(P0), (n, 1))
+    lw = np.full(n, -math.log(n))
+    pf_m, pf_v, pf_ll, pf_ess = [], [], [], []
+    for t, y in enumerate(ys):
+
+        def loglik(z, y=y):
+            return -0.5 * (math.log(2 * math.pi * R) + (y - z[:, 0]) ** 2 / R)
+
+        if t == 0:  # the prior already describes x_0: weight only
+            l0 = loglik(parts)
+            lw = lw + l0
+            ll = float(np.log(np.exp(lw).sum()))
+            lw -= ll
+        else:
+            res = apf_step(
+                parts,
+                lw,
+                prng,
+                predict_mean=lambda z: A * z,
+                propagate=lambda z, g: A * z + g.normal(0, math.sqrt(Q), z.shape),
+                log_likelihood=loglik,
+                first_stage_exponent=beta,
+            )
+            parts, lw, ll = res.particles, res.log_weights, res.log_likelihood
+        w = np.exp(lw)
+        mean = float(w @ parts[:, 0])
+        pf_m.append(mean)
+        pf_v.append(float(w @ (parts[:, 0] - mean) ** 2))
+        pf_ll.append(ll)
+        pf_ess.append(effective_sample_size(lw))
+        if effective_sample_size(lw) < 0.5 * n:
+            parts = parts[systematic(lw, prng)]
+            lw = np.full(n, -math.log(n))
+    pf_m, pf_v, pf_ll, ess = map(np.array, (pf_m, pf_v, pf_ll, pf_ess))
+    # Monte Carlo tolerances from the effective sample size of each step (5 standard errors:
+    # sd(mean) = sqrt(P / ESS), sd(variance) / P = sqrt(2 / ESS) for a Gaussian posterior).
+    # (the classic APF, beta = 1, dips to ESS ~ n/30 on an outlying observation: its first-stage
+    # weights p(y | mu) ignore the process noise and are too peaked; beta < 1 tempers them)
+    assert ess.min() > n / 50, ess.min()
+    tol_m = 5 * np.sqrt(kv / ess)
+    assert np.all(np.abs(pf_m - km) < tol_m), np.max(np.abs(pf_m - km) / tol_m)
+    tol_v = 5 * np.sqrt(2 / ess)
+    assert np.all(np.abs(pf_v / kv - 1) < tol_v), np.max(np.abs(pf_v / kv - 1) / tol_v)
+    # the predictive likelihood estimate (drives kidnap detection) matches the KF's
+    assert np.all(np.abs(pf_ll - kll) < 0.08), np.max(np.abs(pf_ll - kll))
+    assert abs(pf_ll.sum() - kll.sum()) < 0.3
+
+
+def test_no_observation_is_pure_prediction() -> None:
+    rng = np.random.default_rng(0)
+    parts = rng.normal(size=(100, 2))
+    lw = np.log(rng.uniform(0.1, 1, 100))
+    lw -= np.log(np.exp(lw).sum())
+    res = apf_step(
+        parts,
+        lw,
+        rng,
+        predict_mean=lambda z: z,
+        propagate=lambda z, g: z + 1.0,
+        log_likelihood=None,
+    )
+    np.testing.assert_allclose(res.particles, parts + 1.0)
+    np.testing.assert_allclose(res.log_weights, lw)
+
+
+# --------------------------------------------------------------------- pose filter
+
+BOUNDS = Bounds(0.0, 8.0, 0.0, 4.0)
+
+
+def _filter(n=2000, seed=0, free_space=None, **kw) -> AuxiliaryParticleFilter:
+    return AuxiliaryParticleFilter(
+        OdometryMotionModel(MotionModelConfig(alpha1=0.02, alpha2=0.02, alpha3=0.02, alpha4=0.005)),
+        BOUNDS,
+        FilterConfig(n_particles=n, **kw),
+        free_space=free_space,
+        rng=np.random.default_rng(seed),
+    )
+
+
+def test_uniform_initial_belief_covers_the_area() -> None:
+    pf = _filter(n=8000)
+    p = pf.particles
+    assert np.all(BOUNDS.contains(p[:, :2]))
+    counts = np.histogram2d(p[:, 0], p[:, 1], bins=[np.linspace(0, 8, 5), np.linspace(0, 4, 3)])[0]
+    assert counts.min() > 0.8 * 1000 and counts.max() < 1.2 * 1000
+    th = np.histogram(p[:, 2], bins=np.linspace(-np.pi, np.pi, 9))[0]
+    assert th.min() > 0.85 * 1000 and th.max() < 1.15 * 1000
+    assert pf.ess() == pytest.approx(8000)
+    assert pf.estimate().state == "global"
+    est = pf.estimate()
+    assert np.sqrt(est.covariance[0, 0]) > 1.5  # spread, not a point
+
+
+def test_uniform_initial_belief_respects_free_space() -> None:
+    def free(xy):
+        return ~((xy[:, 0] > 2) & (xy[:, 0] < 4))  # a wall block
+
+    pf = _filter(n=3000, free_space=free)
+    assert np.all(free(pf.particles[:, :2]))
+    assert pf.particles.shape == (3000, 3)
+
+
+def test_estimate_of_bimodal_set_is_the_heavier_mode() -> None:
+    pf = _filter(n=2000)
+    rng = np.random.default_rng(3)
+    a = np.column_stack(
+        [rng.normal(1.5, 0.1, 1000), rng.normal(1.0, 0.1, 1000), rng.normal(0.5, 0.05, 1000)]
+    )
+    b = np.column_stack(
+        [rng.normal(6.0, 0.1, 1000), rng.normal(3.0, 0.1, 1000), rng.normal(-2.0, 0.05, 1000)]
+    )
+    lw = np.concatenate([np.full(1000, np.log(0.35)), np.full(1000, np.log(0.65))])
+    pf.set_particles(np.vstack([a, b]), lw)
+    est = pf.estimate()
+    assert est.pose[0] == pytest.approx(6.0, abs=0.05) and est.pose[1] == pytest.approx(
+        3.0, abs=0.05
+    )
+    assert est.pose[2] == pytest.approx(-2.0, abs=0.02)
+    assert est.cluster_weight == pytest.approx(0.65, abs=1e-9)
+    assert np.sqrt(est.covariance[0, 0]) < 0.2  # the mode's spread, not the gap between modes
+
+
+def test_circular_mean_and_clusters_across_the_cut() -> None:
+    rng = np.random.default_rng(4)
+    th = wrap_angle(np.pi + rng.normal(0, 0.1, 500))
+    assert th.min() < -3 and th.max() > 3  # particles on both sides of the cut
+    poses = np.column_stack([rng.normal(2, 0.1, 500), rng.normal(2, 0.1, 500), th])
+    labels = cluster_labels(poses)
+    assert np.unique(labels).size == 1
+    mean, cov = weighted_pose_stats(poses, np.ones(500))
+    assert abs(wrap_angle(mean[2] - np.pi)) < 0.02
+    assert np.sqrt(cov[2, 2]) == pytest.approx(0.1, rel=0.1)
+    # a particle at -pi + 0.01 and one at pi - 0.01 are neighbours
+    two = np.array([[1.0, 1.0, np.pi - 0.01], [1.0, 1.0, -np.pi + 0.01], [5.0, 1.0, 0.0]])
+    lab = cluster_labels(two)
+    assert lab[0] == lab[1] != lab[2]
+
+
+def test_set_pose_tracks() -> None:
+    pf = _filter(n=1000)
+    pf.set_pose([2.0, 1.0, 3.1], np.diag([0.01, 0.01, 0.01]))
+    est = pf.estimate()
+    assert est.state == "tracking"
+    assert np.allclose(est.pose[:2], [2.0, 1.0], atol=0.02)
+    assert abs(wrap_angle(est.pose[2] - 3.1)) < 0.02
+
+
+# --------------------------------------------------------------------- synthetic world
+
+
+def _feature_fn(d=8, seed=0):
+    r = np.random.default_rng(seed)
+    w = r.normal(size=(d, 4)) * np.array([0.8, 0.8, 1.5, 1.5])
+    b = r.uniform(0, 2 * np.pi, d)
+
+    def f(p):
+        p = np.atleast_2d(p)
+        z = np.column_stack([p[:, 0], p[:, 1], np.cos(p[:, 2]), np.sin(p[:, 2])])
+        return np.cos(z @ w.T + b)
+
+    return f
+
+
+def _grid(xmax=8.0, ymax=4.0, step=0.5, nth=12):
+    xs, ys = np.arange(0, xmax + 1e-9, step), np.arange(0, ymax + 1e-9, step)
+    ts = -np.pi + np.arange(nth) * 2 * np.pi / nth
+    X, Y, T = np.meshgrid(xs, ys, ts, indexing="ij")
+    return np.column_stack([X.ravel(), Y.ravel(), T.ravel()])
+
+
+def _drive(truth):
+    d = np.array([0.1, 0.0, 0.05])
+    new = compose(truth, d)
+    if not (0.4 < new[0] < 7.6 and 0.4 < new[1] < 3.6):
+        d = np.array([0.0, 0.0, 0.5])
+        new = compose(truth, d)
+    return new, d
+
+
+def test_global_localization_then_kidnap_recovery() -> None:
+    f = _feature_fn()
+    poses = _grid()
+    model = NearestNeighbourSensorModel(poses, f(poses), SensorModelConfig(j=10))
+    pf = _filter(n=800, seed=1)
+    rng = np.random.default_rng(2)
+    truth = np.array([1.0, 1.0, 0.3])
+    pan = 0.4
+    errors, states = [], []
+    kidnap_at, horizon = 40, 70
+    for t in range(horizon):
+        if t == kidnap_at:
+            truth = np.array([6.5, 3.0, -2.0])
+        truth, d = _drive(truth)
+        odo = d + rng.normal(0, [0.01, 0.01, 0.01])
+        y = f(camera_pose(truth, pan))[0] + rng.normal(0, 0.05, 8)
+        pf.update(odo, pan, model.observe(y))
+        est = pf.estimate()
+        errors.append(float(np.hypot(*(est.pose[:2] - truth[:2]))))
+        states.append(est.state)
+    errors = np.array(errors)
+    # converged from the uniform belief (1-20 updates over 6 seeds measured), and tracked
+    assert np.all(errors[25:kidnap_at] < 0.5), errors[:kidnap_at]
+    assert states[kidnap_at - 1] == "tracking"
+    # the kidnapping is visible right away ...
+    assert errors[kidnap_at] > 3.0
+    # ... and recovered within 10 updates (1-5 measured over 6 seeds), for good
+    assert np.all(errors[kidnap_at + 10 :] < 0.5), errors[kidnap_at:]
+    assert states[-1] == "tracking"
+
+
+def test_lost_state_when_likelihood_collapses() -> None:
+    f = _feature_fn()
+    poses = _grid()
+    model = NearestNeighbourSensorModel(poses, f(poses), SensorModelConfig(j=10))
+    pf = _filter(n=500, seed=3, max_inject_fraction=0.0)  # no recovery: it must say "lost"
+    rng = np.random.default_rng(4)
+    truth = np.array([2.0, 2.0, 0.0])
+    pf.set_pose(truth, np.diag([0.01, 0.01, 0.005]))
+    for _ in range(15):
+        truth, d = _drive(truth)
+        pf.update(d, 0.0, model.observe(f(truth)[0] + rng.normal(0, 0.05, 8)))
+    assert pf.state == "tracking"
+    wrong = np.array([6.0, 1.0, 2.5])
+    states = []
+    for _ in range(15):
+        truth, d = _drive(truth)
+        pf.update(d, 0.0, model.observe(f(compose(wrong, np.zeros(3)))[0]))
+        states.append(pf.state)
+    assert "lost" in states[:10], states

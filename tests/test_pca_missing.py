@@ -1,0 +1,161 @@
+"""PCA with missing data by EM (paper section 5, ref. [11]): agreement with plain PCA,
+recovery of a low-rank subspace from sparse samples, never-valid pixels, sparse projection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.linalg import subspace_angles
+
+from lino_loc.errors import LinoLocError
+from lino_loc.pca_missing import MissingDataPCA, fit_pca_missing, plain_pca
+
+
+def _low_rank(rng: np.random.Generator, n: int, dim: int, d: int, noise: float) -> tuple:
+    scales = np.linspace(4.0, 1.5, d)[:, None]
+    basis = rng.normal(size=(d, dim)) * scales
+    z = rng.normal(size=(n, d))
+    offset = rng.normal(size=dim) * 3.0
+    x = z @ basis + offset + rng.normal(0.0, noise, (n, dim))
+    return x, basis, offset
+
+
+def _max_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest principal angle between the row spaces of a and b, degrees."""
+    return float(np.degrees(subspace_angles(a.T, b.T)).max())
+
+
+def test_complete_data_agrees_with_plain_pca():
+    rng = np.random.default_rng(0)
+    x, _, _ = _low_rank(rng, 200, 120, 5, noise=0.3)
+    model = fit_pca_missing(x, 5, seed=0)
+    mu, comps, var = plain_pca(x, 5)
+    assert _max_angle_deg(model.components, comps) < 1.0
+    assert np.allclose(model.mean, mu, atol=1e-8)
+    # each component matches its plain-PCA counterpart (ordered by variance, up to sign)
+    cos = np.abs(np.sum(model.components * comps, axis=1))
+    assert np.all(cos > 0.999)
+    # PPCA model variances along the components = plain PCA eigenvalues (ML, 1/N vs 1/(N-1))
+    assert np.allclose(model.explained_variance, var * (199 / 200), rtol=1e-3)
+    assert np.all(np.diff(model.explained_variance) <= 0)
+    assert np.allclose(model.components @ model.components.T, np.eye(5), atol=1e-10)
+
+
+@pytest.mark.parametrize("missing", [0.3, 0.5])
+def test_recovers_subspace_with_values_missing_at_random(missing):
+    rng = np.random.default_rng(1)
+    x, basis, _ = _low_rank(rng, 300, 150, 4, noise=0.05)
+    xs = x.copy()
+    xs[rng.random(x.shape) < missing] = np.nan
+    model = fit_pca_missing(xs, 4, seed=1)
+    assert _max_angle_deg(model.components, basis) < 1.0
+    assert np.allclose(model.mean, x.mean(0), atol=0.03)  # ML mean ~ the complete-data mean
+    assert model.sigma2 == pytest.approx(0.05**2, rel=0.3)
+    # the log-likelihood never decreases (EM)
+    ll = np.array(model.log_likelihood)
+    assert np.all(np.diff(ll) >= -1e-9 * np.abs(ll[1:]))
+    # mean imputation + plain PCA is visibly worse: the EM does something
+    mean_imp = np.where(np.isnan(xs), np.nanmean(xs, axis=0), xs)
+    _, comps_imp, _ = plain_pca(mean_imp, 4)
+    assert _max_angle_deg(comps_imp, basis) > 2 * _max_angle_deg(model.components, basis)
+
+
+def test_pixels_never_valid_do_not_break_it():
+    rng = np.random.default_rng(2)
+    x, basis, _ = _low_rank(rng, 200, 100, 3, noise=0.05)
+    xs = x.copy()
+    xs[rng.random(x.shape) < 0.4] = np.nan
+    dead = np.array([0, 1, 2, 50, 99])
+    xs[:, dead] = np.nan
+    xs[7] = np.nan  # one sample with no valid pixel at all
+    model = fit_pca_missing(xs, 3, seed=2)
+    for arr in (model.mean, model.components, model.W, model.explained_variance):
+        assert np.all(np.isfinite(arr))
+    assert np.all(model.W[dead] == 0.0)
+    assert np.all(model.components[:, dead] == 0.0)
+    assert np.all(model.mean[dead] == 0.0)
+    assert np.all(model.observed_count[dead] == 0)
+    live = np.setdiff1d(np.arange(100), dead)
+    assert _max_angle_deg(model.components[:, live], basis[:, live]) < 1.0
+    y, has = model.project(xs, return_valid=True)
+    assert np.all(np.isfinite(y))
+    assert not has[7] and has.sum() == 199
+    assert np.all(y[7] == 0.0)
+    # a query valid only on never-trained pixels carries no information: prior mean
+    q = np.full(100, np.nan)
+    q[dead] = 5.0
+    yq, ok = model.project(q, return_valid=True)
+    assert ok and np.allclose(yq, 0.0)
+    yq, ok = model.project(np.full(100, np.nan), return_valid=True)
+    assert not ok and np.all(yq == 0.0)
+
+
+def test_sparse_projection_equals_full_projection_on_noiseless_data():
+    rng = np.random.default_rng(3)
+    x, _, _ = _low_rank(rng, 150, 80, 4, noise=0.0)
+    xs = x.copy()
+    xs[rng.random(x.shape) < 0.4] = np.nan
+    model = fit_pca_missing(xs, 4, seed=3, max_iter=300)
+    y_full = model.project(x)
+    y_sparse = model.project(xs)
+    scale = np.abs(y_full).max()
+    assert np.abs(y_sparse - y_full).max() < 1e-4 * scale
+    # features are coordinates in the components' basis: reconstruction is exact
+    assert np.allclose(model.reconstruct(y_full), x, atol=1e-4 * np.abs(x).max())
+    # a single sample (1-D) gives the same as its row
+    assert np.allclose(model.project(xs[5]), y_sparse[5])
+
+
+def test_projection_matches_plain_pca_features_on_complete_data():
+    rng = np.random.default_rng(4)
+    x, _, _ = _low_rank(rng, 200, 60, 3, noise=0.01)
+    model = fit_pca_missing(x, 3, seed=4)
+    y = model.project(x)
+    y_plain = (x - model.mean) @ model.components.T
+    # posterior mean shrinks by s_k^2 / (s_k^2 + sigma^2): tiny at this noise level
+    assert np.allclose(y, y_plain, rtol=1e-3, atol=1e-3)
+
+
+def test_deterministic_with_seed_and_rejects_bad_input():
+    rng = np.random.default_rng(5)
+    x, _, _ = _low_rank(rng, 60, 40, 2, noise=0.1)
+    x[rng.random(x.shape) < 0.3] = np.nan
+    a = fit_pca_missing(x, 2, seed=7)
+    b = fit_pca_missing(x, 2, seed=7)
+    assert np.array_equal(a.components, b.components) and a.sigma2 == b.sigma2
+    with pytest.raises(LinoLocError):
+        fit_pca_missing(x, 0)
+    with pytest.raises(LinoLocError):
+        fit_pca_missing(np.full((5, 4), np.nan), 1)
+    with pytest.raises(LinoLocError):
+        a.project(np.zeros(39))
+
+
+def test_float32_products_agree_with_float64():
+    rng = np.random.default_rng(6)
+    x, _, _ = _low_rank(rng, 200, 100, 3, noise=0.1)
+    x[rng.random(x.shape) < 0.4] = np.nan
+    a = fit_pca_missing(x.astype(np.float32), 3, seed=0)
+    b = fit_pca_missing(x, 3, seed=0, dtype=np.float32)
+    assert _max_angle_deg(a.components, b.components) < 0.05
+
+
+def test_model_rebuilt_from_stored_projection_gives_the_same_features():
+    rng = np.random.default_rng(7)
+    x, _, _ = _low_rank(rng, 150, 90, 4, noise=0.2)
+    x[rng.random(x.shape) < 0.4] = np.nan
+    x[:, 3] = np.nan
+    model = fit_pca_missing(x, 4, seed=0)
+    again = MissingDataPCA.from_projection(
+        model.mean, model.components, model.explained_variance, model.sigma2
+    )
+    assert np.allclose(again.project(x), model.project(x), atol=1e-9)
+    assert np.allclose(again.components, model.components)
+    # the per-frame path (few samples) and the batch path give the same features
+    batch = model.project(x)
+    assert np.allclose(model.project(x[:3]), batch[:3], atol=1e-9)
+    assert np.allclose(model.project(x[10]), batch[10], atol=1e-9)
+    with pytest.raises(LinoLocError):
+        MissingDataPCA.from_projection(
+            model.mean[:-1], model.components, model.explained_variance, 1.0
+        )
