@@ -66,13 +66,29 @@ def synthetic(n: int, dim: int, rank: int, noise: float, seed: int) -> np.ndarra
     return X
 
 
+def _cpu_s() -> float:
+    """CPU seconds used by this process, all threads (less sensitive to a loaded machine)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+_LAST_CPU: list[float] = []
+
+
 def _timed(fn, repeats: int) -> tuple[list[float], object]:
     times, out = [], None
+    _LAST_CPU.clear()
     for _ in range(repeats):
+        c = _cpu_s()
         t = time.perf_counter()
         out = fn()
         times.append(time.perf_counter() - t)
+        _LAST_CPU.append(_cpu_s() - c)
     return times, out
+
+
+def _cpu_median() -> float:
+    return round(statistics.median(_LAST_CPU), 3)
 
 
 def _memory(fn) -> dict[str, float]:
@@ -97,6 +113,7 @@ def job_synthetic_pca(method: str, n: int, dim: int, rank: int, d: int, repeats:
     return {
         "median_s": round(statistics.median(times), 3),
         "times_s": [round(t, 3) for t in times],
+        "median_cpu_s": _cpu_median(),
         **mem,
         "data_mb": round(X.nbytes / 2**20, 1),
         "components": pca.components,  # type: ignore[union-attr]
@@ -111,7 +128,7 @@ def job_load(root: str, preprocess: str, size: tuple[int, int], workers: int, re
     load_vectors(ds.subset(range(min(64, len(ds)))), preprocess, size, workers=workers)  # warm
     times, X = _timed(lambda: load_vectors(ds, preprocess, size, workers=workers), repeats)
     return {"median_s": round(statistics.median(times), 3), "times_s": [round(t, 3) for t in times],
-            "images": len(ds), "per_image_ms": round(1000 * statistics.median(times) / len(ds), 3)}
+            "median_cpu_s": _cpu_median(), "images": len(ds), "per_image_ms": round(1000 * statistics.median(times) / len(ds), 3)}
 
 
 def job_dataset_pca(root: str, method: str, size: tuple[int, int], d: int, repeats: int) -> dict:
@@ -123,7 +140,7 @@ def job_dataset_pca(root: str, method: str, size: tuple[int, int], d: int, repea
     mem = _memory(lambda: fit_pca(X, d, method=method))
     times, pca = _timed(lambda: fit_pca(X, d, method=method), repeats)
     return {"median_s": round(statistics.median(times), 3), "times_s": [round(t, 3) for t in times],
-            **mem, "components": pca.components}  # type: ignore[union-attr]
+            "median_cpu_s": _cpu_median(), **mem, "components": pca.components}  # type: ignore[union-attr]
 
 
 def job_build(root: str, preprocess: str, size: tuple[int, int], d: int, method: str, condition: str | None) -> dict:
@@ -131,6 +148,7 @@ def job_build(root: str, preprocess: str, size: tuple[int, int], d: int, method:
     from lino_loc.dataset import Dataset
 
     before = _rss_mb()
+    c0 = _cpu_s()
     t0 = time.perf_counter()
     ds = Dataset.open(root)
     t1 = time.perf_counter()
@@ -142,6 +160,7 @@ def job_build(root: str, preprocess: str, size: tuple[int, int], d: int, method:
     t3 = time.perf_counter()
     return {
         "total_s": round(t3 - t0, 3),
+        "cpu_s": round(_cpu_s() - c0, 3),
         "open_dataset_s": round(t1 - t0, 3),
         "build_s": round(t2 - t1, 3),
         "save_s": round(t3 - t2, 3),
@@ -204,7 +223,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--condition", default=None)
     ap.add_argument("--make-lab-survey", metavar="DIR", help="render the lab survey into DIR first")
+    ap.add_argument(
+        "--blas-threads", type=int, default=None,
+        help="set OPENBLAS_NUM_THREADS/OMP_NUM_THREADS for the measuring processes "
+        "(on a loaded machine 1 is much faster than spinning BLAS threads)",
+    )
     args = ap.parse_args(argv)
+    if args.blas_threads is not None:  # the spawned children read it when they import numpy
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(args.blas_threads)
     w, h = (int(v) for v in args.size.split("x"))
     methods = [m for m in args.methods.split(",") if m]
     result: dict = {
@@ -215,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
             "cpu_count": os.cpu_count(),
             "python": platform.python_version(),
             "numpy": np.__version__,
+            "blas_threads_env": os.environ.get("OPENBLAS_NUM_THREADS"),
+            "load_average_at_start": [round(v, 2) for v in os.getloadavg()],
         },
         "size": [w, h],
         "features": args.features,
@@ -268,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
                                   "totals_s": totals, "median_run": best}
             print(f"build {pre}: {statistics.median(totals)} s", file=sys.stderr)
         result["survey"] = real
+    result["machine"]["load_average_at_end"] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(result))
     return 0
 

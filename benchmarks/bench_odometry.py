@@ -76,6 +76,10 @@ def main() -> int:
     try:
         time.sleep(0.3)  # the reader has opened the port
         assert proc.stdin is not None and proc.stdout is not None
+        proc.stdin.write("1\n")  # the first line only sets the baseline: send it untimed
+        proc.stdin.flush()
+        assert int(proc.stdout.readline()) == 1
+        time.sleep(0.1)
         for _ in range(args.repeats):
             odo.read()
             before = odo.health().counters["increments"]

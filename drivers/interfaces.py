@@ -153,7 +153,7 @@ class StereoFrame:
 class StereoCamera(Protocol):
     """A calibrated stereo camera producing rectified pairs (and optionally disparity)."""
 
-    def open(self) -> None:
+    def open(self) -> bool | None:
         """Start streaming. Never raises for a missing device: health says so instead."""
 
     def read(self, timeout: float | None = None) -> StereoFrame | None:
@@ -220,6 +220,9 @@ class PanTiltHead(Protocol):
     @property
     def limits(self) -> HeadLimits: ...
 
+    def open(self) -> bool | None:
+        """Connect and set up. Never raises for a missing device: health says so instead."""
+
     def command(self, pan: float, tilt: float) -> HeadCommand:
         """Send goal angles (radians); they are clamped to the limits."""
 
@@ -255,6 +258,9 @@ class OdometryIncrement:
 @runtime_checkable
 class Odometry(Protocol):
     """Timestamped pose increments of the base."""
+
+    def open(self) -> bool | None:
+        """Start receiving. Never raises for a missing device: health says so instead."""
 
     def read(self, timeout: float | None = None) -> list[OdometryIncrement]:
         """Increments received since the previous call (waits up to ``timeout`` s for one)."""

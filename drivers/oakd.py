@@ -38,11 +38,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.interfaces import (
     CameraIntrinsics,
@@ -55,39 +54,9 @@ from drivers.interfaces import (
 os.environ.setdefault("DEPTHAI_LEVEL", "error")  # silence "USB protocol not available"
 import depthai as dai  # noqa: E402
 
+from drivers.oakd_config import OakdConfig  # noqa: E402
+
 log = logging.getLogger("lino_loc.drivers.oakd")
-
-Preset = Literal["DEFAULT", "ACCURACY", "DENSITY", "FAST_ACCURACY", "FAST_DENSITY", "ROBOTICS"]
-Median = Literal["off", "3x3", "5x5", "7x7"]
-
-
-class OakdConfig(BaseModel):
-    """Configuration of the OAK-D (design.md section 6 defaults)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    device: str | None = Field(None, description="device id or name; None = the first found")
-    width: int = Field(640, gt=0)
-    height: int = Field(400, gt=0)
-    fps: float = Field(30.0, gt=0.0)
-    preset: Preset = "DEFAULT"
-    confidence_threshold: int = Field(200, ge=0, le=255, description="higher keeps more pixels")
-    left_right_check: bool = True
-    left_right_check_threshold: int = Field(5, ge=0, le=128)
-    subpixel: bool = True
-    subpixel_fractional_bits: Literal[3, 4, 5] = 3
-    extended_disparity: bool = False
-    median_filter: Median = "off"
-    output_right: bool = True
-    output_disparity: bool = True
-    baseline_m: float = Field(0.075, gt=0.0, description="used when the calibration has none")
-    hfov_deg: float = Field(72.0, gt=0.0, lt=180.0, description="used without calibration")
-    queue_size: int = Field(4, ge=1, description="device -> host queue length per stream")
-    buffer: int = Field(2, ge=1, description="assembled frames kept for read(); older dropped")
-    stale_after: float = Field(1.0, gt=0.0, description="s without a frame -> degraded")
-    reconnect_backoff_min: float = Field(0.5, gt=0.0)
-    reconnect_backoff_max: float = Field(10.0, gt=0.0)
-
 
 # --------------------------------------------------------------------------------------------
 # host-side mapping and conversion
@@ -303,7 +272,6 @@ def device_pipeline_factory(config: OakdConfig) -> PipelineSession:
             stereo.setSubpixelFractionalBits(config.subpixel_fractional_bits)
         stereo.setExtendedDisparity(config.extended_disparity)
         stereo.setDepthAlign(dai.StereoDepthConfig.AlgorithmControl.DepthAlign.RECTIFIED_LEFT)
-        stereo.setOutputSize(config.width, config.height)
         ic = stereo.initialConfig
         ic.setConfidenceThreshold(config.confidence_threshold)
         ic.setLeftRightCheckThreshold(config.left_right_check_threshold)

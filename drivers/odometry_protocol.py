@@ -16,10 +16,9 @@ Kinematics (exact for constant wheel speeds during a sample interval, i.e. a cir
     dx       = ds * sin(dtheta) / dtheta
     dy       = ds * (1 - cos(dtheta)) / dtheta = ds * 2 sin^2(dtheta/2) / dtheta
 
-(Taylor series below |dtheta| = 1e-6)
-
-in the base frame at the start of the interval (x forward, y left, theta CCW, REP-103); this
-is the odometry increment u_t consumed by the filter's motion model.
+in the base frame at the start of the interval (x forward, y left, theta CCW, REP-103), with a
+Taylor series below |dtheta| = 1e-6; this is the odometry increment u_t consumed by the
+filter's motion model.
 
 Usage::
 

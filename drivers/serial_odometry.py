@@ -261,13 +261,21 @@ class SerialOdometry:
         dl = wrap_delta(s.left, prev.left) * c.left_sign * self._metres_per_tick
         dr = wrap_delta(s.right, prev.right) * c.right_sign * self._metres_per_tick
         limit = c.max_wheel_speed * max(dt_ms, 1) / 1000.0 + 4 * self._metres_per_tick
-        if dt_ms <= 0 or d_seq <= 0 or abs(dl) > limit or abs(dr) > limit:
+        reason = (
+            "sequence did not increase" if d_seq <= 0
+            else "board time went back" if dt_ms < 0
+            else f"wheel travel {max(abs(dl), abs(dr)):.3f} m in {dt_ms} ms"
+            if abs(dl) > limit or abs(dr) > limit
+            else None
+        )  # fmt: skip
+        if reason is not None:
             self._health.count("resets")
-            self._health.error(
-                f"odometry: implausible jump (seq {prev.seq}->{s.seq}, t_ms {prev.t_ms}->"
-                f"{s.t_ms}); board reset? counters re-baselined"
+            msg = (
+                f"odometry: implausible jump ({reason}; seq {prev.seq}->{s.seq}, t_ms "
+                f"{prev.t_ms}->{s.t_ms}): board reset? counters re-baselined"
             )
-            log.warning("odometry: implausible jump, re-baselining (seq %d->%d)", prev.seq, s.seq)
+            self._health.error(msg)
+            log.warning("%s", msg)
             self._t_unwrapped_ms = s.t_ms
             self._offsets.clear()
             self._board_time(s, host_time)

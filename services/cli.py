@@ -29,6 +29,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.commands.bench",
     "services.commands.config_cmd",
     "services.commands.echo",
+    "services.commands.run",
+    "services.commands.sim",
 )
 
 log = logging.getLogger("lino_loc")

@@ -43,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from drivers.dynamixel_head import HeadConfig
-from drivers.oakd import OakdConfig
+from drivers.oakd_config import OakdConfig
 from drivers.serial_odometry import OdometryConfig
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import LocalizerConfig

@@ -8,6 +8,7 @@ import os
 import time
 from collections.abc import Iterator
 
+import dynamixel_sdk
 import dynamixel_sdk.port_handler as sdk_port_handler
 import pytest
 
@@ -26,7 +27,7 @@ from drivers.sim.dynamixel_emulator import DynamixelBusEmulator
 def make_config(port: str, **kw: object) -> HeadConfig:
     base: dict[str, object] = dict(
         port=port,
-        latency_timer_ms=1.0,
+        latency_timer_ms=16.0,  # SDK default: 34 ms packet timeout, room for a loaded machine
         min_read_interval=0.0,
         profile_velocity=6.0,
         retries=2,
@@ -46,7 +47,7 @@ def emu() -> Iterator[DynamixelBusEmulator]:
 @pytest.fixture()
 def head(emu: DynamixelBusEmulator) -> Iterator[DynamixelHead]:
     h = DynamixelHead(make_config(emu.port))
-    assert h.open()
+    assert h.open(), h.health()
     yield h
     h.close()
 
@@ -54,7 +55,7 @@ def head(emu: DynamixelBusEmulator) -> Iterator[DynamixelHead]:
 def test_open_configures_servos(emu: DynamixelBusEmulator, head: DynamixelHead) -> None:
     assert isinstance(head, PanTiltHead)
     c = head.config
-    assert sdk_port_handler.LATENCY_TIMER == 1.0
+    assert sdk_port_handler.LATENCY_TIMER == 16.0
     assert emu.register(1, XAddr.MAX_POSITION_LIMIT) == rad_to_tick(c.pan_max)
     assert emu.register(1, XAddr.MIN_POSITION_LIMIT) == rad_to_tick(c.pan_min)
     assert emu.register(2, XAddr.MAX_POSITION_LIMIT) == rad_to_tick(c.tilt_max)
@@ -86,7 +87,7 @@ def test_command_moves_at_profile_velocity(emu: DynamixelBusEmulator, head: Dyna
     assert state.tilt == pytest.approx(-0.3, abs=2 * math.pi / 4096)
     # 0.6 rad at the profile velocity (6 rad/s after rounding to units) takes ~0.1 s
     v = profile_velocity_to_rad_s(rad_s_to_profile_velocity(6.0))
-    assert 0.6 / v * 0.8 < elapsed < 0.6 / v + 0.3
+    assert 0.6 / v * 0.8 < elapsed < 0.6 / v + 1.0  # never faster than the profile
     assert emu.position_rad(1) == pytest.approx(state.pan, abs=1e-3)
 
 
@@ -108,7 +109,7 @@ def test_no_reply_retries_then_degraded_not_exception(
     emu.set_no_reply(2)
     t0 = time.monotonic()
     state = head.read()  # must not raise
-    assert time.monotonic() - t0 < 0.5
+    assert time.monotonic() - t0 < 1.0
     assert state.stale
     assert state.tilt == good.tilt
     health = head.health()
@@ -124,12 +125,25 @@ def test_no_reply_retries_then_degraded_not_exception(
 def test_all_silent_does_not_burn_a_core(emu: DynamixelBusEmulator, head: DynamixelHead) -> None:
     emu.set_no_reply(1)
     emu.set_no_reply(2)
-    c0, w0 = time.process_time(), time.monotonic()
+    # The adapter works in the caller's thread: thread_time excludes the emulator's thread and
+    # whatever else runs in this process.
+    c0, w0 = time.thread_time(), time.monotonic()
     for _ in range(5):
         assert head.read().stale
-    cpu, wall = time.process_time() - c0, time.monotonic() - w0
+    cpu, wall = time.thread_time() - c0, time.monotonic() - w0
     assert wall > 0.05  # the timeouts really happened
-    assert cpu < 0.5 * wall, f"cpu {cpu:.3f} s over {wall:.3f} s"
+    # the same wait with the SDK as shipped (serial timeout 0) spins; compare on this machine
+    port = dynamixel_sdk.PortHandler(emu.port)
+    port.openPort()
+    try:
+        ph = dynamixel_sdk.PacketHandler(2.0)
+        s0, t0 = time.thread_time(), time.monotonic()
+        while time.monotonic() - t0 < 0.3:
+            assert ph.ping(port, 1)[1] == dynamixel_sdk.COMM_RX_TIMEOUT
+        spin = (time.thread_time() - s0) / (time.monotonic() - t0)
+    finally:
+        port.closePort()
+    assert cpu / wall < 0.25 and cpu / wall < 0.5 * spin, (cpu / wall, spin)
 
 
 def test_crc_error_is_retried(emu: DynamixelBusEmulator, head: DynamixelHead) -> None:
@@ -167,7 +181,7 @@ def test_hardware_error_reboots_and_restores(
 
 def test_persistent_hardware_error_gives_up(emu: DynamixelBusEmulator) -> None:
     head = DynamixelHead(make_config(emu.port, max_reboots=1))
-    assert head.open()
+    assert head.open(), head.health()
     try:
         emu.set_hardware_error(1, HardwareError.OVERLOAD)
         head.read()

@@ -121,16 +121,21 @@ def test_constant_wheel_speeds_trace_the_closed_form_circle(run: Run) -> None:
 def test_increments_carry_board_time_and_host_stamps(run: Run) -> None:
     run.emu.set_wheel_speeds(0.2, 0.2)
     time.sleep(0.1)
+    run.odo.read()  # drop the increments that straddle the speed change
+    time.sleep(0.2)
     incs = run.odo.read(timeout=0.5)
     assert incs
     now = time.time()
     stamps = [i.stamp for i in incs]
-    assert all(now - 1.0 < s <= now + 1e-3 for s in stamps)
+    assert all(now - 1.0 < s <= now + 1e-3 for s in stamps), (now, stamps)
     assert stamps == sorted(stamps)
-    assert all(0.005 < i.dt < 0.05 for i in incs)  # 100 Hz emulator
+    # 100 Hz emulator: 10 ms apart, with the jitter of a thread on a loaded host
+    assert all(0.0 < i.dt < 0.5 for i in incs), [i.dt for i in incs]
+    assert 0.005 < float(np.median([i.dt for i in incs])) < 0.05
     for i in incs:  # straight line at 0.2 m/s
         assert i.dy == 0.0 and i.dtheta == 0.0
-        assert i.dx == pytest.approx(0.2 * i.dt, abs=3 * M_PER_TICK)
+        # board time has 1 ms resolution, counters 1 tick
+        assert i.dx == pytest.approx(0.2 * i.dt, abs=0.2 * 0.001 + 2 * M_PER_TICK)
 
 
 def test_counter_wrap_forward_and_backward(run: Run) -> None:
@@ -249,9 +254,12 @@ def test_idle_adapter_uses_little_cpu(tmp_path: os.PathLike[str]) -> None:
         odo.open()
         try:
             time.sleep(0.1)
-            c0, w0 = time.process_time(), time.monotonic()
+            assert odo._thread is not None and odo._thread.ident is not None
+            # CPU clock of the reader thread alone (not the rest of this process)
+            clock = time.pthread_getcpuclockid(odo._thread.ident)
+            c0, w0 = time.clock_gettime(clock), time.monotonic()
             time.sleep(0.5)
-            cpu = time.process_time() - c0
+            cpu = time.clock_gettime(clock) - c0
             assert cpu < 0.05 * (time.monotonic() - w0)
         finally:
             odo.close()

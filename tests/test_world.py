@@ -150,3 +150,16 @@ def test_bad_json_and_missing_file(tmp_path: Path) -> None:
         load_world(path)
     with pytest.raises(LinoLocError, match="not found"):
         load_world("no_such_world")
+
+
+def test_plot_floor_plan(office: World) -> None:
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    office.plot_floor_plan(ax, scene_changes=("people",))
+    xmin, xmax, ymin, ymax = office.room
+    x0, x1 = ax.get_xlim()
+    assert x0 <= xmin and x1 >= xmax
+    plt.close(fig)

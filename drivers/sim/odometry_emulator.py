@@ -159,7 +159,7 @@ class OdometryBoardEmulator:
                 self._stop.wait(next_t - now)
                 continue
             next_t += period
-            if next_t < now - 1.0:  # fell far behind (suspended): resynchronise
+            if next_t < now:  # fell behind (host load): skip samples, never send bursts
                 next_t = now + period
             dt = now - last
             last = now

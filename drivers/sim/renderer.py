@@ -126,7 +126,8 @@ class Renderer:
         self._rays: dict[float, _Rays] = {}
         self._noise_buf: np.ndarray | None = None
         self._lut: np.ndarray | None = None
-        self._lighting = self.world.check_lighting(lighting) and lighting
+        self.world.check_lighting(lighting)
+        self._lighting = lighting
         self._changes = self.world.check_changes(tuple(scene_changes))
         self._load()
 
@@ -158,15 +159,14 @@ class Renderer:
         w = np.array([[*wl.start, *wl.end] for wl in geo.walls], np.float64).reshape(-1, 4)
         self._w0 = w[:, :2]
         self._we = w[:, 2:] - w[:, :2]
-        self._box = np.array([[b.cx, b.cy, math.cos(b.yaw), math.sin(b.yaw), b.hx, b.hy, b.zmin, b.zmax]
-                              for b in geo.boxes], np.float64).reshape(-1, 8)
+        self._box = np.array([[bx.cx, bx.cy, math.cos(bx.yaw), math.sin(bx.yaw), bx.hx, bx.hy, bx.zmin, bx.zmax]
+                              for bx in geo.boxes], np.float64).reshape(-1, 8)
         nb, nw = len(self._box), len(self._w0)
         self._zlo = np.concatenate([np.zeros(nw), self._box[:, 6]]).astype(np.float32)
         self._zhi = np.concatenate([np.full(nw, self._hc), self._box[:, 7]]).astype(np.float32)
         bf = self.baked.box_face_sid
-        self._top_sid = np.concatenate([np.full(nw, -1), bf[:, 4] if nb else np.zeros(0, np.int64)]).astype(np.int64)
+        self._top_sid = np.concatenate([np.full(nw, -1), bf[:, 4] if nb else np.zeros(0, np.int64)]).astype(np.int32)
         self._bot_sid = np.concatenate([np.full(nw, -1), bf[:, 5] if nb else np.zeros(0, np.int64)]).astype(np.int32)
-        self._top_sid = self._top_sid.astype(np.int32)
         self._box_side_sid = bf[:, :4].astype(np.int32) if nb else np.zeros((0, 4), np.int32)
         self._box_radius = np.hypot(self._box[:, 4], self._box[:, 5])
         org, eu, ev = b.origin.astype(np.float64), b.eu.astype(np.float64), b.ev.astype(np.float64)
@@ -218,6 +218,9 @@ class Renderer:
             foot_h=(1.0 / (fx * self.texel * np.maximum(np.abs(dz) / norm, 0.05))).astype(np.float32).ravel(),
             foot_v=(1.0 / (fx * self.texel * np.maximum(h / norm, 0.05))).astype(np.float32).ravel(),
         )
+        if len(self._rays) >= 32:  # continuous tilts: keep the memory bounded
+            self._rays.clear()
+            self._fc_cache.clear()
         self._rays[key] = rays
         return rays
 
@@ -337,24 +340,35 @@ class Renderer:
         # per candidate rank j: the sids of its front, top and bottom faces side by side
         sid3 = np.concatenate([fsid, tsid, bsid], axis=1)  # (K, 3 A)
         with np.errstate(divide="ignore", invalid="ignore"):
-            # nearest candidate, every pixel
+            # nearest candidate, every pixel: most pixels hit its front face (or floor/ceiling)
             ri = r_in[0].take(ps)
             lo = zlo[0].take(ps)
             hi = zhi[0].take(ps)
             z_in = h + s * ri
-            z_out = h + s * r_out[0].take(ps)
             near = ri < r_fc
-            above = z_in > hi
-            below = z_in < lo
-            top = near & above & (z_out <= hi)
-            bot = near & below & (z_out >= lo)
-            front = near & ~above & ~below
-            got = front | top | bot
-            rr = np.where(front, ri, (np.where(top, hi, lo) - h) / s)
-            r_hit = np.where(got, rr, r_fc)
-            case = np.int32(n_az) * (top.view(np.int8) + 2 * bot.view(np.int8))
-            sid = np.where(got, sid3[0].take(ps + case), sid_fc)
-            todo = np.flatnonzero(near & ~got)
+            off = (z_in > hi) | (z_in < lo)
+            front = near & ~off
+            r_hit = np.where(front, ri, r_fc)
+            sid = np.where(front, fsid[0].take(ps), sid_fc)
+            # the few that pass above or below a box at entry: top / bottom face or further
+            odd = np.flatnonzero(near & off)
+            if odd.size:
+                pidx, st = ps[odd], s[odd]
+                zi, hio, loo = z_in[odd], hi[odd], lo[odd]
+                z_out = h + st * r_out[0].take(pidx)
+                top = (zi > hio) & (z_out <= hio)
+                bot = (zi < loo) & (z_out >= loo)
+                got = top | bot
+                gi = np.flatnonzero(got)
+                if gi.size:
+                    g = odd[gi]
+                    tp = top[gi]
+                    r_hit[g] = (np.where(tp, hio[gi], loo[gi]) - h) / st[gi]
+                    case = np.int32(n_az) * (tp.view(np.int8) + 2 * bot[gi].view(np.int8))
+                    sid[g] = sid3[0].take(pidx[gi] + case)
+                todo = odd[~got]
+            else:
+                todo = odd
             for j in range(1, k):
                 if todo.size == 0:
                     break

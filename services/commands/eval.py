@@ -11,6 +11,9 @@ import importlib
 EVAL_MODULES: tuple[str, ...] = (
     "services.commands.illumination_eval",
     "services.commands.stereo_eval",
+    "services.commands.active_eval",
+    "services.commands.localization_eval",
+    "services.commands.sensor_model_eval",
 )
 
 

@@ -7,6 +7,10 @@ returns, per requested channel, the vectors that the appearance map's channels c
 disparity of the rendered stereo pair (lino_loc.disparity), NaN where stereo gave no value.
 Every view's sensor noise is seeded by (seed, view index), so results do not depend on the
 number of workers.
+
+``render_grey`` returns the camera's uint8 grey images instead (what the Localizer takes, for
+drives), and ``build_sim_maps`` turns a rendered survey grid into appearance maps (one per
+preprocessing, eq. 1) kept as map files under ~/.cache/lino-loc/maps (``$LINO_LOC_CACHE``).
 """
 
 from __future__ import annotations
@@ -15,13 +19,18 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers.sim.renderer import CameraModel, Renderer
-from drivers.sim.world import load_world
+from drivers.sim.world import grid_poses, load_world
 from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
 from lino_loc.preprocessing import preprocess, to_vector
+
+if TYPE_CHECKING:
+    from lino_loc.appearance_map import AppearanceMap
 
 
 @dataclass(frozen=True)
@@ -101,3 +110,136 @@ def render_vectors(
                 if progress:
                     progress(done, len(poses))
     return {name: np.concatenate([p[name] for p in parts]) for name in _channels(spec)}
+
+
+# --------------------------------------------------------------------------- grey images
+# (added for the localization evaluations, issue 3: the Localizer takes the camera's image)
+
+
+def _render_grey_chunk(args: tuple[int, np.ndarray]) -> np.ndarray:
+    start, poses = args
+    assert _worker is not None
+    spec, renderer = _worker
+    out = np.empty((len(poses), spec.height, spec.width), dtype=np.uint8)
+    for k, (x, y, theta) in enumerate(poses):
+        rng = np.random.default_rng((spec.seed, start + k))
+        out[k] = renderer.render(float(x), float(y), float(theta), stereo=False, rng=rng).grey
+    return out
+
+
+def render_grey(
+    spec: ViewSpec,
+    poses: np.ndarray,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    chunk: int = 32,
+) -> np.ndarray:
+    """The camera's grey images (N, height, width) uint8 at robot poses (N, 3), pan 0, under
+    ``spec.lighting`` and ``spec.scene_changes``; noise seeded by (seed, view index)."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    workers = workers or os.cpu_count() or 1
+    jobs = [(i, poses[i : i + chunk]) for i in range(0, len(poses), chunk)]
+    parts: list[np.ndarray] = []
+    done = 0
+    if workers == 1 or len(jobs) <= 1:
+        _init(spec)
+        results = map(_render_grey_chunk, jobs)
+        for part in results:
+            parts.append(part)
+            done += len(part)
+            if progress:
+                progress(done, len(poses))
+    else:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(spec,)) as pool:
+            for part in pool.map(_render_grey_chunk, jobs):
+                parts.append(part)
+                done += len(part)
+                if progress:
+                    progress(done, len(poses))
+    if not parts:
+        return np.zeros((0, spec.height, spec.width), dtype=np.uint8)
+    return np.concatenate(parts)
+
+
+# --------------------------------------------------------------------------- survey maps
+
+
+def map_cache_dir() -> Path:
+    """Where rendered survey maps are cached (``$LINO_LOC_CACHE`` or ~/.cache/lino-loc)/maps."""
+    root = os.environ.get("LINO_LOC_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "lino-loc")
+    return Path(root) / "maps"
+
+
+def build_sim_maps(
+    world: str,
+    step: float,
+    heading_step_deg: float,
+    features: int,
+    preprocesses: tuple[str, ...] = ("none",),
+    *,
+    lighting: str = "tube",
+    width: int = 320,
+    height: int = 240,
+    size: tuple[int, int] = (80, 60),
+    seed: int = 0,
+    workers: int | None = None,
+    cache: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, AppearanceMap]:
+    """Appearance maps (eq. 1) of a simulated survey, one per preprocessing, built in memory.
+
+    The survey is :func:`drivers.sim.world.grid_poses` (every ``step`` m and
+    ``heading_step_deg``, free positions of the mapped area, no scene changes: the map knows
+    the building as it was), rendered under ``lighting`` with pan 0 (camera pose = robot
+    pose); the PCA is the map builder's (randomized, ``seed``). With ``cache`` each map is
+    kept as a map file under :func:`map_cache_dir`, keyed by every parameter and the world's
+    fingerprint, and loaded from there next time.
+    """
+    import math
+
+    from lino_loc.appearance_map import AppearanceMap, ChannelMap, _project_rows
+    from lino_loc.dataset import CameraInfo
+    from lino_loc.pca import fit_pca
+
+    w = load_world(world)
+    cam = CameraModel(width=width, height=height)
+    key = (
+        f"{w.name}-{lighting}-{step:g}m-{heading_step_deg:g}deg-{features}f-{{pre}}-{width}x{height}-"
+        f"{size[0]}x{size[1]}-s{seed}-{w.fingerprint[:10]}.npz"
+    )
+    out: dict[str, AppearanceMap] = {}
+    missing = []
+    for pre in preprocesses:
+        path = map_cache_dir() / key.format(pre=pre)
+        if cache and path.is_file():
+            try:
+                out[pre] = AppearanceMap.load(path)
+                continue
+            except Exception:  # a stale or broken cache file: rebuild it
+                pass
+        missing.append(pre)
+    if not missing:
+        return out
+    poses = grid_poses(w, step, math.radians(heading_step_deg))
+    spec = ViewSpec(world=world, lighting=lighting, width=width, height=height, size=size,
+                    preprocess=tuple(missing), seed=seed)
+    vectors = render_vectors(spec, poses, workers=workers, progress=progress)
+    fx, fy, cx, cy = cam.intrinsics()
+    info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)
+    for pre in missing:
+        X = vectors[pre]
+        pca = fit_pca(X, features, seed=seed)
+        Y, total = _project_rows(pca, X)
+        ch = ChannelMap(name="intensity", preprocess=pre, size=(int(size[0]), int(size[1])), pca=pca,
+                        features=Y, method="randomized", params={"total_variance": total, "seed": seed})
+        amap = AppearanceMap(poses=poses.copy(), channels={"intensity": ch}, camera=info,
+                             source=f"sim:{w.name}", name=f"{w.name}-{lighting}", condition=lighting)
+        if cache:
+            path = map_cache_dir() / key.format(pre=pre)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                amap.save(path)
+            except OSError:
+                pass
+        out[pre] = amap
+    return {pre: out[pre] for pre in preprocesses}

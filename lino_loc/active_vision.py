@@ -1,0 +1,571 @@
+"""Active vision: the pan angle whose next image is expected to leave the least pose entropy.
+
+Paper, section 4, and its reference [10] (Porta, Terwijn, Kroese, "Efficient entropy-based
+action selection for appearance-based robot localization", ICRA 2003). For a candidate pan
+angle ``u`` the expected entropy of the pose after turning the camera to ``u`` and taking an
+image is approximated with the two parts of the localization system:
+
+* the particle set gives a discrete set of poses where the robot may be: particles ``x_i``
+  with weights ``pi_i`` (a weighted subsample of at most ``max_particles``; duplicate
+  particles, frequent after resampling, are merged and their weights summed);
+* the appearance map gives the observation the camera would get at each of them: the
+  predicted observation ``y_i(u)`` is the feature vector of the map entry NEAREST to the
+  camera pose ``camera_pose(x_i, u)`` (no interpolation). "Nearest" uses the metric of the
+  sensor model's kernel, ``|dp|^2 / sigma_xy^2 + kappa * chord(dtheta)^2`` with
+  ``chord = 2 sin(dtheta / 2)`` (the angle wrapped; ``kappa = 1 / sigma_theta^2``), i.e. the
+  map entry whose kernel is highest at that camera pose;
+* for each predicted observation the posterior the filter would reach is, over the same
+  particles, ``w_k ∝ pi_k p(y_i(u) | camera_pose(x_k, u))`` with the filter's own sensor model
+  (:class:`lino_loc.sensor_model.NearestNeighbourSensorModel`: the J map entries nearest in
+  feature space, the lambda weights, the kernels, the outlier component);
+* its entropy is the DISCRETE entropy of the reweighted particle set,
+  ``H_i(u) = -sum_k w_k log w_k`` (nats), and ``H(u) = sum_i pi_i H_i(u)``.
+
+The chosen action is ``argmin_u H(u) + move_cost * |u - pan|`` (the head-movement cost is an
+optional tie-breaker, nats per radian). The discrete entropy is bounded by log M, is
+invariant to the units of the pose and needs no density estimate; the differential entropy
+of a Gaussian fitted to the particles, ``0.5 log((2 pi e)^3 det Sigma)``, is the usual
+alternative but misjudges multi-modal beliefs (two tight, distant hypotheses have a large
+covariance), which are exactly the beliefs where the camera should move.
+
+Vectorization. Since a predicted observation IS a map entry, the sensor-model mixture of
+every map entry's features (its J feature-space neighbours and log-lambdas) is computed once
+(an N x J table). The kernel phi(c | m) of the sensor model is an isotropic Gaussian in the
+embedding ``e(x, y, theta) = (x / sigma_xy, y / sigma_xy, sqrt(kappa) cos theta,
+sqrt(kappa) sin theta)``: ``log phi = -|e(c) - e(m)|^2 / 2 + const`` exactly (von Mises:
+``kappa cos d = kappa - kappa chord(d)^2 / 2``). So one call costs one (N x 4) @ (4 x A M)
+product and one exponential for the kernels of all map entries at all camera poses (A actions
+x M particles), then per action a sparse (M x N, J non-zeros per row) times dense (N x M)
+product gives the likelihood of every predicted observation at every particle, and the
+(A x M x M) entropies follow. The nearest map entry of the A M camera poses comes from a
+k-d tree over the same embedding.
+
+The policy (:class:`ActivePolicy`) decides WHEN to look (belief not converged: the filter
+state is ``global`` or ``lost``, or the belief entropy is above ``trigger_entropy``, or the last
+observation fits the map badly: predictive log-likelihood below ``min_log_likelihood``),
+WHEN to stop (converged, or no action lowers the expected entropy by ``min_entropy_gain``),
+waits for the head to settle and for a frame taken after it settled, and never commands a
+pan outside the intersection of its own range and the head's limits. It is pure logic: the
+caller (the daemon) passes the head's present pan, its moving flag and the time.
+
+Usage::
+
+    evaluator = ActionEvaluator(sensor_model, ActiveVisionConfig())
+    values = evaluator.evaluate(pf.particles, pf.log_weights)      # values.expected_entropy (A,)
+    policy = ActivePolicy(evaluator, head_limits=(-2.6, 2.6))
+    d = policy.decide(pf.particles, pf.log_weights, state=est.state,
+                      log_likelihood=est.log_likelihood, pan=head.pan, moving=head.moving,
+                      now=time.time(), frame_stamp=frame.stamp)
+    if d.command is not None:
+        head.command(d.command, 0.0)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy import sparse
+from scipy.spatial import cKDTree
+from scipy.special import i0e
+
+from lino_loc.poses import wrap_angle
+from lino_loc.resampling import logsumexp
+from lino_loc.sensor_model import LOG_2PI, NearestNeighbourSensorModel, lambda_log_weights
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+class ActiveVisionConfig(BaseModel):
+    """Action evaluation and policy settings (the field names of the service's
+    ``[active_vision]`` section, plus the ones the policy adds)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = True
+    n_actions: int = Field(22, ge=2, le=360, description="candidate pan angles (the paper: 22)")
+    pan_min: float = Field(-2.6, ge=-math.pi, le=math.pi, description="radians")
+    pan_max: float = Field(2.6, ge=-math.pi, le=math.pi, description="radians")
+    max_particles: int = Field(
+        150, ge=1, description="particles used to evaluate H(u) (the paper: up to 150)"
+    )
+    min_entropy_gain: float = Field(
+        0.05, ge=0.0, description="nats; move only if the best action lowers H by this much"
+    )
+    trigger_entropy: float | None = Field(
+        None,
+        description="nats; also look while the belief entropy (over cells) is above this "
+        "(unset: only the filter state and the observation fit decide)",
+    )
+    min_log_likelihood: float | None = Field(
+        None,
+        description="look when the last observation's predictive log-likelihood is below this "
+        "(the observation fits the map badly); unset: not used",
+    )
+    min_interval_s: float = Field(1.0, ge=0.0, description="seconds between head movements")
+    settle_s: float = Field(0.2, ge=0.0, description="wait after the head stops before using frames")
+    move_cost: float = Field(
+        1e-3, ge=0.0, description="nats per radian of head movement added to H(u) (tie-breaker)"
+    )
+    pan_tolerance: float = Field(
+        0.02, ge=0.0, description="radians; a best action this close to the present pan = stay"
+    )
+    predicted_neighbours: Literal["all", "leave_one_out"] = Field(
+        "all",
+        description="sensor model of a predicted observation (a map entry's features): its J "
+        "nearest map entries ('all', the entry itself first) or the J nearest among the OTHER "
+        "entries ('leave_one_out': an image taken off the map grid never matches an entry exactly)",
+    )
+    entropy_cell_xy: float = Field(0.5, gt=0.0, description="cell size (m) of the belief entropy")
+    entropy_cell_theta: float = Field(
+        math.radians(30.0), gt=0.0, description="cell size (rad) of the belief entropy"
+    )
+
+    @model_validator(mode="after")
+    def _range(self) -> ActiveVisionConfig:
+        if not self.pan_min < self.pan_max:
+            raise ValueError(f"pan_min ({self.pan_min}) must be < pan_max ({self.pan_max})")
+        return self
+
+    def actions(self) -> FloatArray:
+        """The candidate pan angles: ``n_actions`` evenly spaced over [pan_min, pan_max]."""
+        return np.linspace(self.pan_min, self.pan_max, self.n_actions)
+
+
+# --------------------------------------------------------------------------- entropies
+
+
+def discrete_entropy(log_weights: ArrayLike, axis: int = -1) -> FloatArray:
+    """Shannon entropy (nats) of normalized-or-not log-weights along ``axis``:
+    ``-sum w log w`` with ``w = softmax(log_weights)``; log N for equal weights, 0 for one
+    particle holding all the weight."""
+    lw = np.asarray(log_weights, dtype=np.float64)
+    lw = lw - logsumexp(lw, axis=axis, keepdims=True)
+    w = np.exp(lw)
+    terms = np.zeros_like(w)
+    np.multiply(w, lw, out=terms, where=w > 0)
+    return -np.sum(terms, axis=axis)
+
+
+def belief_entropy(
+    particles: ArrayLike,
+    log_weights: ArrayLike,
+    cell_xy: float = 0.5,
+    cell_theta: float = math.radians(30.0),
+) -> float:
+    """Entropy (nats) of the belief's mass over pose cells (``cell_xy`` x ``cell_xy`` x
+    ``cell_theta``, heading cells aligned at -pi).
+
+    Unlike the discrete entropy of the weights (log N after every resampling, however spread
+    the particles are), this measures how spread the belief is: near 0 when the particles sit
+    in one cell, log(number of cells) for a belief spread evenly over them (log N for N
+    particles in N distinct cells with equal weights)."""
+    p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
+    w = np.exp(np.asarray(log_weights, dtype=np.float64) - logsumexp(log_weights))
+    n_th = max(1, int(round(2.0 * math.pi / cell_theta)))
+    ix = np.floor(p[:, 0] / cell_xy).astype(np.int64)
+    iy = np.floor(p[:, 1] / cell_xy).astype(np.int64)
+    it = np.floor((wrap_angle(p[:, 2]) + math.pi) / (2.0 * math.pi / n_th)).astype(np.int64) % n_th
+    keys = np.stack([ix, iy, it], axis=1)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    mass = np.bincount(inv.reshape(-1), weights=w)
+    mass = mass[mass > 0]
+    return float(-np.sum(mass * np.log(mass)))
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+@dataclass(frozen=True)
+class ActionValues:
+    """Result of one action evaluation."""
+
+    actions: FloatArray  # (A,) pan angles, radians
+    expected_entropy: FloatArray  # (A,) H(u), nats
+    current_entropy: float  # discrete entropy of the (subsampled) belief, nats
+    n_particles: int  # particles used (after subsampling and merging duplicates)
+
+    @property
+    def gain(self) -> FloatArray:
+        """Expected entropy reduction of each action, nats."""
+        return self.current_entropy - self.expected_entropy
+
+    def best(self, pan: float | None = None, move_cost: float = 0.0, exclude: ArrayLike | None = None) -> int:
+        """Index of argmin H(u) + move_cost |u - pan| (``exclude``: indices not allowed)."""
+        score = self.expected_entropy.copy()
+        if pan is not None and move_cost > 0.0:
+            score = score + move_cost * np.abs(self.actions - pan)
+        if exclude is not None:
+            score[np.asarray(exclude, dtype=np.int64)] = np.inf
+        return int(np.argmin(score))
+
+
+def subsample(
+    particles: ArrayLike,
+    log_weights: ArrayLike,
+    max_particles: int,
+    rng: np.random.Generator | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """At most ``max_particles`` distinct particles and their normalized log-weights.
+
+    Identical particles are merged (weights summed). If more remain, a systematic resample of
+    ``max_particles`` draws (offset from ``rng``, or 0.5 without one) is taken and merged
+    again, so the weights stay proportional to the belief."""
+    p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
+    lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
+    lw = lw - logsumexp(lw)
+    p, lw = _merge(p, lw)
+    if p.shape[0] > max_particles:
+        w = np.exp(lw)
+        u0 = rng.random() if rng is not None else 0.5
+        pos = (u0 + np.arange(max_particles)) / max_particles
+        cdf = np.cumsum(w)
+        cdf[-1] = 1.0
+        idx = np.minimum(np.searchsorted(cdf, pos), p.shape[0] - 1)
+        p, lw = _merge(p[idx], np.full(max_particles, -math.log(max_particles)))
+    return p, lw
+
+
+def _merge(p: FloatArray, lw: FloatArray) -> tuple[FloatArray, FloatArray]:
+    uniq, inv = np.unique(p, axis=0, return_inverse=True)
+    if uniq.shape[0] == p.shape[0]:
+        return p, lw
+    w = np.bincount(inv.reshape(-1), weights=np.exp(lw - lw.max()))
+    return uniq, np.log(w) - math.log(w.sum())
+
+
+class ActionEvaluator:
+    """H(u) for candidate pan angles with the filter's own sensor model (module docstring).
+
+    Two ways to get the kernels of all map entries at all camera poses: when the map is a
+    product grid (every surveyed position holds the same set of headings, as a survey by
+    ``lino-loc survey`` does) the kernel factors into a position part (unique positions x
+    particles) and a heading part (unique headings x actions x particles), one broadcast
+    product away from the full table, and the nearest map entry is the nearest position with
+    the nearest heading; otherwise the full (N x A M) table is one product in the kernel
+    embedding and one exponential, and a k-d tree gives the nearest entries (slower, see
+    ``benchmarks/bench_active.py``). ``grid`` is True on the fast path.
+    """
+
+    def __init__(
+        self,
+        model: NearestNeighbourSensorModel,
+        config: ActiveVisionConfig | None = None,
+        use_grid: bool = True,
+    ) -> None:
+        self.config = config or ActiveVisionConfig()
+        self.model = model
+        c = model.config
+        self.sigma_xy = float(c.sigma_xy)
+        self.kappa = 1.0 / float(c.sigma_theta) ** 2
+        self.outlier_weight = float(c.outlier_weight)
+        self.map_poses = np.asarray(model.poses, dtype=np.float64)
+        n_map = self.map_poses.shape[0]
+        # The sensor mixture of every map entry's own features: N x J neighbours, log-lambdas.
+        if self.config.predicted_neighbours == "leave_one_out" and model.j < n_map:
+            idx, d2 = model.neighbours(model.features, model.j + 1)
+            own = idx == np.arange(n_map)[:, None]
+            drop = np.where(own.any(axis=1), np.argmax(own, axis=1), model.j)
+            keep = np.ones_like(own)
+            keep[np.arange(n_map), drop] = False
+            idx = idx[keep].reshape(n_map, model.j)
+            d2 = d2[keep].reshape(n_map, model.j)
+        else:
+            idx, d2 = model.neighbours(model.features)
+        self.nn_index = idx
+        self.nn_log_lambda = lambda_log_weights(d2, c.lambda_scale, c.lambda_scale_factor)
+        # log of the kernel's normalizer: phi = exp(-|de|^2 / 2 + log_norm)
+        self.log_norm = -(LOG_2PI + 2.0 * math.log(self.sigma_xy)) - (
+            LOG_2PI + math.log(float(i0e(self.kappa)))
+        )
+        self.log_floor = (
+            math.log(self.outlier_weight) + model.bounds.log_uniform_density
+            if self.outlier_weight > 0.0
+            else -math.inf
+        )
+        self._floor_over_norm = (
+            math.exp(self.log_floor - self.log_norm) if self.log_floor > -math.inf else 0.0
+        )
+        grid = self._product_grid() if use_grid else None
+        self.grid = grid is not None
+        if grid is not None:
+            self._positions, self._headings, column = grid  # column[j]: p * H + h of entry j
+        else:
+            column = np.arange(n_map)
+            self._emb_map32 = self.embed(self.map_poses).astype(np.float32)
+            self._sq_map = np.einsum("ij,ij->i", self._emb_map32, self._emb_map32)
+            self._tree = cKDTree(self.embed(self.map_poses))
+        self._column = column
+        self._entry_of_column = np.empty(n_map, dtype=np.int64)
+        self._entry_of_column[column] = np.arange(n_map)
+        # Per map entry (indexed by column): its neighbours' columns and (1 - outlier) lambdas.
+        self._nn_cols = column[idx][self._entry_of_column].astype(np.int32)
+        self._nn_lam = (np.exp(self.nn_log_lambda) * (1.0 - self.outlier_weight)).astype(np.float32)[
+            self._entry_of_column
+        ]
+
+    def _product_grid(self) -> tuple[FloatArray, FloatArray, IntArray] | None:
+        """(positions (P, 2), headings (H,), column of each entry) if the map is a product grid."""
+        p = self.map_poses
+        pos, pinv = np.unique(np.round(p[:, :2], 6), axis=0, return_inverse=True)
+        hd, hinv = np.unique(np.round(wrap_angle(p[:, 2]), 6), return_inverse=True)
+        n_p, n_h = pos.shape[0], hd.shape[0]
+        if n_p * n_h != p.shape[0] or n_h > 64:
+            return None
+        column = pinv.reshape(-1) * n_h + hinv.reshape(-1)
+        if np.unique(column).size != p.shape[0]:
+            return None
+        return pos, hd, column.astype(np.int64)
+
+    def embed(self, poses: ArrayLike) -> FloatArray:
+        """Kernel embedding (x/s, y/s, sqrt(kappa) cos t, sqrt(kappa) sin t) of poses (..., 3)."""
+        p = np.asarray(poses, dtype=np.float64)
+        rk = math.sqrt(self.kappa)
+        return np.stack(
+            [
+                p[..., 0] / self.sigma_xy,
+                p[..., 1] / self.sigma_xy,
+                rk * np.cos(p[..., 2]),
+                rk * np.sin(p[..., 2]),
+            ],
+            axis=-1,
+        )
+
+    @property
+    def actions(self) -> FloatArray:
+        return self.config.actions()
+
+    def _kernels(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, IntArray]:
+        """Kernel table exp(-|e(m_j) - e(c_ak)|^2 / 2) as (A, N, M) float32 with entries in
+        column order, and the column of the nearest map entry to each camera pose (A, M)."""
+        a_n, m = u.size, p.shape[0]
+        if self.grid:
+            pos, hd = self._positions, self._headings
+            dx = pos[:, 0:1] - p[None, :, 0]
+            dy = pos[:, 1:2] - p[None, :, 1]
+            lg = -(dx * dx + dy * dy) / (2.0 * self.sigma_xy**2)  # (P, M)
+            near_p = np.argmax(lg, axis=0)
+            g = np.exp(lg.astype(np.float32))
+            cam = p[None, :, 2] + u[:, None]  # (A, M)
+            ang = np.cos(cam[:, None, :] - hd[None, :, None])  # (A, H, M)
+            near_h = np.argmax(ang, axis=1)
+            ang -= 1.0
+            ang *= self.kappa
+            v = np.exp(ang.astype(np.float32))
+            kern = g[None, :, None, :] * v[:, None, :, :]  # (A, P, H, M)
+            pred = near_p[None, :] * hd.size + near_h
+            return kern.reshape(a_n, -1, m), pred.astype(np.int64)
+        cam = np.repeat(p[None, :, :], a_n, axis=0)
+        cam[:, :, 2] = cam[:, :, 2] + u[:, None]
+        emb = self.embed(cam).reshape(a_n * m, 4)
+        _, near = self._tree.query(emb, k=1)
+        e32 = emb.astype(np.float32)
+        t = self._emb_map32 @ e32.T  # -|e_n - e_c|^2 / 2 = e_n.e_c - |e_n|^2/2 - |e_c|^2/2
+        t -= 0.5 * self._sq_map[:, None]
+        t -= 0.5 * np.einsum("ij,ij->i", e32, e32)[None, :]
+        np.minimum(t, 0.0, out=t)  # round-off; far kernels underflow to 0
+        np.exp(t, out=t)
+        kern = t.reshape(-1, a_n, m).transpose(1, 0, 2)
+        return np.ascontiguousarray(kern), np.asarray(near, dtype=np.int64).reshape(a_n, m)
+
+    def _mixture_sums(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, IntArray]:
+        """S[a, i, k] = sum_j (1 - w_out) lambda_j exp(-|e(m_j) - e(c_ak)|^2 / 2) for the
+        predicted observation of particle i (float32, without the kernel normalizer), and the
+        predicted map entries (A, M)."""
+        a_n, m = u.size, p.shape[0]
+        kern, pred_col = self._kernels(p, u)
+        n_map = kern.shape[1]
+        j = self._nn_cols.shape[1]
+        cols = self._nn_cols[pred_col] + (np.arange(a_n, dtype=np.int32) * n_map)[:, None, None]
+        lam = sparse.csr_matrix(
+            (self._nn_lam[pred_col].reshape(-1), cols.reshape(-1), np.arange(0, a_n * m * j + 1, j)),
+            shape=(a_n * m, a_n * n_map),
+        )
+        s = lam @ kern.reshape(a_n * n_map, m)
+        return np.asarray(s).reshape(a_n, m, m), self._entry_of_column[pred_col]
+
+    def likelihoods(self, particles: ArrayLike, actions: ArrayLike) -> tuple[FloatArray, IntArray]:
+        """log p(y_i(u) | camera_pose(x_k, u)) as (A, M_i, M_k), and the predicted map entries (A, M).
+
+        Equals ``model.log_likelihood_matrix(features[n], camera_pose(particles, u))`` row by
+        row (the tests check it); computed with the cached N x J mixtures."""
+        p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
+        u = np.asarray(actions, dtype=np.float64).reshape(-1)
+        s, pred = self._mixture_sums(p, u)
+        with np.errstate(divide="ignore"):
+            out = np.log(s.astype(np.float64)) + self.log_norm
+        if self.log_floor > -math.inf:
+            floor = np.where(self.model.bounds.contains(p[:, :2]), self.log_floor, -np.inf)
+            np.logaddexp(out, floor[None, None, :], out=out)
+        return out, pred
+
+    def evaluate(
+        self,
+        particles: ArrayLike,
+        log_weights: ArrayLike,
+        actions: ArrayLike | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> ActionValues:
+        """H(u) for every candidate pan angle (default: the configured ``n_actions``)."""
+        u = self.actions if actions is None else np.asarray(actions, dtype=np.float64).reshape(-1)
+        p, lw = subsample(particles, log_weights, self.config.max_particles, rng)
+        pi = np.exp(lw)
+        s, _ = self._mixture_sums(p, u)  # (A, i, k) float32, likelihood / kernel normalizer
+        # q = pi_k p(y_i | x_k) / const, in linear space (the floor keeps it positive inside
+        # the bounds); H_i = log Z - sum_k q log q / Z with Z = sum_k q.
+        inside = self.model.bounds.contains(p[:, :2])
+        s += (self._floor_over_norm * inside).astype(np.float32)[None, None, :]
+        s *= (pi / pi.max()).astype(np.float32)[None, None, :]
+        z = s.sum(axis=-1, dtype=np.float64)
+        lq = np.zeros_like(s)
+        np.log(s, out=lq, where=s > 0)
+        sq = np.einsum("aik,aik->ai", s, lq, dtype=np.float64)
+        ok = z > 0
+        h = np.full(z.shape, float(discrete_entropy(lw)))  # nothing explains y_i: no information
+        h[ok] = np.log(z[ok]) - sq[ok] / z[ok]
+        expected = h @ pi
+        return ActionValues(
+            actions=u,
+            expected_entropy=expected,
+            current_entropy=float(discrete_entropy(lw)),
+            n_particles=int(p.shape[0]),
+        )
+
+
+# --------------------------------------------------------------------------- policy
+
+
+Reason = Literal[
+    "disabled",
+    "head moving",
+    "settling",
+    "interval",
+    "no new frame",
+    "converged",
+    "no gain",
+    "stay",
+    "move",
+]
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the policy decided: ``command`` is the pan angle to send (None: do nothing)."""
+
+    command: float | None
+    reason: Reason
+    belief_entropy: float = math.nan
+    values: ActionValues | None = None
+
+
+class ActivePolicy:
+    """When to look, where, and when to stop (module docstring). Call :meth:`decide` after
+    each filter update with the head's present state; send ``command`` when it is not None.
+
+    ``head_limits`` = (pan_min, pan_max) of the head (e.g. ``head.limits.pan_min/pan_max``);
+    commands never leave the intersection of those and the configured range."""
+
+    def __init__(
+        self,
+        evaluator: ActionEvaluator,
+        config: ActiveVisionConfig | None = None,
+        head_limits: tuple[float, float] | None = None,
+    ) -> None:
+        self.evaluator = evaluator
+        self.config = config or evaluator.config
+        lo, hi = self.config.pan_min, self.config.pan_max
+        if head_limits is not None:
+            lo, hi = max(lo, float(head_limits[0])), min(hi, float(head_limits[1]))
+        if not lo <= hi:
+            raise ValueError(
+                f"active vision: pan range [{self.config.pan_min}, {self.config.pan_max}] does "
+                f"not overlap the head's limits {head_limits}"
+            )
+        self.pan_lo, self.pan_hi = lo, hi
+        self.last_command_time = -math.inf
+        self.last_command: float | None = None
+        self.settled_at: float | None = None
+        self._was_moving = False
+
+    def clamp(self, pan: float) -> float:
+        """A pan angle inside the allowed range (NaN becomes the range's centre)."""
+        if not math.isfinite(pan):
+            return 0.5 * (self.pan_lo + self.pan_hi)
+        return min(max(float(pan), self.pan_lo), self.pan_hi)
+
+    def candidates(self) -> FloatArray:
+        """The configured actions, clamped to the allowed range, duplicates removed."""
+        u = np.clip(self.config.actions(), self.pan_lo, self.pan_hi)
+        return np.unique(u)
+
+    def needs_look(self, state: str, belief_h: float, log_likelihood: float) -> bool:
+        c = self.config
+        if state in ("global", "lost"):
+            return True
+        if c.trigger_entropy is not None and belief_h > c.trigger_entropy:
+            return True
+        return (
+            c.min_log_likelihood is not None
+            and math.isfinite(log_likelihood)
+            and log_likelihood < c.min_log_likelihood
+        ) or (c.min_log_likelihood is not None and log_likelihood == -math.inf)
+
+    def decide(
+        self,
+        particles: ArrayLike,
+        log_weights: ArrayLike,
+        *,
+        state: str,
+        log_likelihood: float,
+        pan: float,
+        moving: bool,
+        now: float,
+        frame_stamp: float | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> Decision:
+        """The next pan command or None (with the reason).
+
+        ``pan``/``moving``: the head's present pan angle and whether it is moving; ``now``: the
+        time of that reading (s); ``frame_stamp``: time of the last frame the filter used (the
+        policy waits for a frame taken ``settle_s`` after the head stopped); ``state``/
+        ``log_likelihood``: the filter's state and the last observation's predictive
+        log-likelihood."""
+        c = self.config
+        if not c.enabled:
+            return Decision(None, "disabled")
+        if moving:
+            self._was_moving = True
+            self.settled_at = None
+            return Decision(None, "head moving")
+        if self._was_moving:  # it just stopped
+            self._was_moving = False
+            self.settled_at = now
+        elif self.settled_at is None:  # first reading, head at rest: settled long ago
+            self.settled_at = -math.inf
+        if now - self.settled_at < c.settle_s:
+            return Decision(None, "settling")
+        if now - self.last_command_time < c.min_interval_s:
+            return Decision(None, "interval")
+        if frame_stamp is not None and frame_stamp < self.settled_at + c.settle_s:
+            return Decision(None, "no new frame")
+        p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
+        lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
+        h_b = belief_entropy(p, lw, c.entropy_cell_xy, c.entropy_cell_theta)
+        if not self.needs_look(state, h_b, log_likelihood):
+            return Decision(None, "converged", h_b)
+        values = self.evaluator.evaluate(p, lw, self.candidates(), rng)
+        here = float(pan) if math.isfinite(pan) else None
+        best = values.best(here, c.move_cost)
+        if values.gain[best] < c.min_entropy_gain:
+            return Decision(None, "no gain", h_b, values)
+        target = self.clamp(float(values.actions[best]))
+        if here is not None and abs(target - here) <= c.pan_tolerance:
+            return Decision(None, "stay", h_b, values)
+        self.last_command_time = now
+        self.last_command = target
+        return Decision(target, "move", h_b, values)

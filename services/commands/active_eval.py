@@ -1,0 +1,92 @@
+"""`lino-loc eval active`: the paper's active-localization experiment (section 6.1, Fig. 3, 4)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+from lino_loc.errors import LinoLocError
+from services.evaluation.active import STRATEGIES, ActiveSetup, plot, run
+from services.progress import Progress
+
+log = logging.getLogger(__name__)
+
+
+def _table(result: dict) -> str:
+    lines = [
+        f"Active localization in the simulated {result['setup']['world']}: {result['positions']} positions x "
+        f"{result['runs']} runs, {result['map_entries']} map images, {result['setup']['particles']} particles, "
+        f"{result['setup']['n_actions']} pans"
+    ]
+    blocks = [("as mapped", result["strategies"])]
+    if "scene_changes" in result:
+        blocks.append(("scene changes " + "+".join(result["scene_changes"]["names"]),
+                       result["scene_changes"]["strategies"]))
+    for title, strategies in blocks:
+        n = len(next(iter(strategies.values()))["success"])
+        lines.append(f"\n{title}: success % (mean error m) after k movements")
+        lines.append(f"{'k':<10}" + "".join(f"{k:>14}" for k in range(n)))
+        for s, r in strategies.items():
+            lines.append(f"{s:<10}" + "".join(
+                f"{100 * r['success'][k]:>6.0f} ({r['mean_error_m'][k]:4.2f})" for k in range(n)))
+    if result.get("entropy_eval_ms_median") is not None:
+        lines.append(f"\nH(u) evaluation: median {result['entropy_eval_ms_median']:.1f} ms CPU")
+    return "\n".join(lines)
+
+
+def _run(args: argparse.Namespace) -> int:
+    changes: tuple[str, ...] = ()
+    if args.scene_changes:
+        changes = tuple(c.strip() for c in args.scene_changes.split(",") if c.strip())
+        if changes == ("all",):
+            from drivers.sim.world import load_world
+
+            changes = load_world(args.world).scene_change_names
+    for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
+                        ("--particles", args.particles), ("--actions", args.actions), ("--eval-particles", args.eval_particles)):
+        if value < 1:
+            raise LinoLocError(f"{name} must be at least 1 (got {value})")
+    setup = ActiveSetup(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
+                        particles=args.particles, n_actions=args.actions, scene_changes=changes,
+                        seed=args.seed, workers=args.workers, features=args.features, j=args.j,
+                        step=args.step, heading_step_deg=args.heading_step, eval_particles=args.eval_particles,
+                        predicted_neighbours=args.predicted)
+    bar = Progress("active")
+    result, extras = run(setup, progress=lambda label, d, n: bar.update(d, n, label=label))
+    bar.close()
+    if args.plot:
+        for f in plot(result, extras, args.plot):
+            log.info("wrote %s", f)
+    print(json.dumps(result) if args.json else _table(result))
+    return 0
+
+
+def register_eval(eval_sub: argparse._SubParsersAction) -> None:
+    p = eval_sub.add_parser(
+        "active",
+        help="Fig. 3: localization error and success against camera movements (entropy, random, sweep)",
+        description="The paper's active-localization experiment in the simulated office: map every 75 cm "
+        "and 15 deg, 5 features, J = 10, 150 particles, 22 pans, uniform initial belief, test positions "
+        f"off the grid; strategies {', '.join(STRATEGIES)}.",
+    )
+    p.add_argument("--world", default="office")
+    p.add_argument("--positions", type=int, default=20, help="test positions (default 20)")
+    p.add_argument("--runs", type=int, default=10, help="runs per position (default 10)")
+    p.add_argument("--movements", type=int, default=10, help="camera movements per run (default 10)")
+    p.add_argument("--particles", type=int, default=150, help="particles of the filter")
+    p.add_argument("--eval-particles", type=int, default=150, help="particles used to evaluate H(u)")
+    p.add_argument("--predicted", choices=("all", "leave_one_out"), default="all",
+                   help="sensor model of a predicted observation (see lino_loc.active_vision)")
+    p.add_argument("--step", type=float, default=0.75, help="map grid step, metres")
+    p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees")
+    p.add_argument("--actions", type=int, default=22, help="candidate pan angles")
+    p.add_argument("--features", type=int, default=5)
+    p.add_argument("--j", type=int, default=10, help="nearest neighbours of the sensor model")
+    p.add_argument("--scene-changes", default="",
+                   help="also run with these scene changes of the world (comma-separated, or 'all')")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--plot", metavar="DIR", default=None, help="write Fig. 3 and Fig. 4 PNGs here")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_run)

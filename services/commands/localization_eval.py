@@ -1,0 +1,186 @@
+"""`lino-loc eval global | tracking | leave-out`: the localization evaluations of issue 3.
+
+- ``global``: global localization in the simulated office, error and success (section 6.1)
+  against the number of updates (:mod:`services.evaluation.global_loc`);
+- ``tracking``: a drive of several minutes through the simulated lab under other light and
+  unmodelled scene changes (:mod:`services.evaluation.tracking`);
+- ``leave-out DATASET``: the sensor-model error of eq. 10 on held-out frames of a dataset,
+  against its floor (:mod:`services.evaluation.leave_out`).
+
+Each prints a short table, or with ``--json`` exactly one JSON object (keys documented in
+docs/evaluations_localization.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from lino_loc.errors import LinoLocError
+from lino_loc.preprocessing import PREPROCESS_METHODS
+from services.progress import Progress
+
+
+def _progress() -> tuple[Progress, object]:
+    bar = Progress("eval")
+
+    def cb(label: str, done: int, total: int) -> None:
+        bar.update(done, total, label=label)
+
+    return bar, cb
+
+
+def _localizer_config(args: argparse.Namespace):  # -> LocalizerConfig
+    from lino_loc.localizer import LocalizerConfig
+
+    if getattr(args, "config", None):
+        from services.config import load_config
+
+        return load_config(args.config).localizer
+    return LocalizerConfig()
+
+
+# --------------------------------------------------------------------------- global
+
+
+def _global(args: argparse.Namespace) -> int:
+    from services.evaluation.global_loc import GlobalSetup, run
+
+    if args.starts < 1 or args.updates < 1:
+        raise LinoLocError("--starts and --updates must be at least 1")
+    setup = GlobalSetup(world=args.world, features=args.features, preprocess=args.preprocess,
+                        starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
+                        j=args.j, seed=args.seed, workers=args.workers)
+    bar, cb = _progress()
+    res = run(setup, _localizer_config(args), progress=cb)  # type: ignore[arg-type]
+    bar.close()
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(f"global localization, {res['world']}: {res['starts']} starts, map {res['map_entries']} entries, "
+          f"{res['features']} features, J={res['J']}, {res['particles']} particles, {res['rate_hz']:g} Hz")
+    print(f"{'update':>6} {'mean err m':>11} {'median m':>9} {'success':>8} {'tracking':>9}")
+    for k in range(res["updates"]):
+        print(f"{k + 1:>6} {res['mean_error_m'][k]:>11.3f} {res['median_error_m'][k]:>9.3f} "
+              f"{res['success'][k]:>8.2f} {res['tracking'][k]:>9.2f}")
+    return 0
+
+
+# --------------------------------------------------------------------------- tracking
+
+
+def _tracking(args: argparse.Namespace) -> int:
+    from services.evaluation.tracking import TrackingSetup, run
+
+    pre = tuple(PREPROCESS_METHODS) if args.preprocess == "all" else (args.preprocess,)
+    changes = () if args.changes in ("", "none") else tuple(c for c in args.changes.split(",") if c)
+    lights = tuple(c for c in args.lights.split(",") if c)
+    if args.duration <= 0 or args.rate <= 0:
+        raise LinoLocError("--duration and --rate must be positive")
+    setup = TrackingSetup(world=args.world, features=args.features, preprocess=pre, lights=lights,
+                          scene_changes=changes, duration=args.duration, rate=args.rate,
+                          particles=args.particles, j=args.j, global_start=not args.no_global,
+                          compare_recovery=not args.no_recovery_comparison,
+                          seed=args.seed, workers=args.workers)
+    bar, cb = _progress()
+    res = run(setup, _localizer_config(args), trajectories=args.trajectories, progress=cb)  # type: ignore[arg-type]
+    bar.close()
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(f"tracking, {res['world']}: {res['duration_s']:.0f} s, {res['path_length_m']:.1f} m, "
+          f"{res['frames']} frames, map {res['map_entries']} entries, {res['features']} features, "
+          f"J={res['J']}, {res['particles']} particles; scene changes: {', '.join(res['scene_changes']) or 'none'}")
+    tables = res.get("by_preprocess", {res["preprocess"]: res["conditions"]})
+    for p, conds in tables.items():
+        print(f"preprocess {p}:")
+        print(f"  {'light':<8} {'ATE m':>7} {'mean m':>7} {'max m':>7} {'head deg':>9} {'conv s':>7}"
+              f"   without recovery: {'mean m':>7} {'max m':>7} {'conv s':>7}")
+        for light, r in conds.items():
+            conv = r.get("converged_after_s")
+            line = (f"  {light:<8} {r['ate_rmse_m']:>7.3f} {r['mean_error_m']:>7.3f} {r['max_error_m']:>7.3f} "
+                    f"{r['heading_rmse_deg']:>9.2f} {'-' if conv is None else f'{conv:.1f}':>7}")
+            w = r.get("without_recovery")
+            if w:
+                c0 = w.get("converged_after_s")
+                line += (f"                     {w['mean_error_m']:>7.3f} {w['max_error_m']:>7.3f} "
+                         f"{'-' if c0 is None else f'{c0:.1f}':>7}")
+            print(line)
+    o = res["odometry"]
+    print(f"  odometry alone: ATE {o['ate_rmse_m']:.3f} m, mean {o['mean_error_m']:.3f} m, max {o['max_error_m']:.3f} m")
+    return 0
+
+
+# --------------------------------------------------------------------------- leave-out
+
+
+def _leave_out(args: argparse.Namespace) -> int:
+    from services.evaluation.leave_out import run
+
+    res = run(args.dataset, every=args.every, features=args.features, j=args.j, preprocess=args.preprocess,
+              seed=args.seed)
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(f"leave-out on {res['dataset']}: map {res['frames_map']} frames, {res['frames_test']} held out "
+          f"(every {res['every']}), {res['features']} features, preprocess {res['preprocess']}")
+    for key, label in (("error_m", f"best of J={res['J']} (eq. 10)"), ("top1_error_m", "top-1"),
+                       ("floor_m", "floor (nearest map pose)"), ("random_m", "random map pose")):
+        s = res[key]
+        print(f"  {label:<26} mean {s['mean']:.3f} m  median {s['median']:.3f} m")
+    h = res["heading_error_deg"]
+    print(f"  {'top-1 heading error':<26} mean {h['mean']:.1f} deg  median {h['median']:.1f} deg")
+    return 0
+
+
+def register_eval(eval_sub: argparse._SubParsersAction) -> None:
+    p = eval_sub.add_parser("global", help="global localization in the office: error and success per update")
+    p.add_argument("--world", default="office")
+    p.add_argument("--starts", type=int, default=20, help="runs from random start poses (at least 20)")
+    p.add_argument("--updates", type=int, default=30, help="updates per run")
+    p.add_argument("--rate", type=float, default=2.0, help="camera frames (updates) per second while driving")
+    p.add_argument("--features", type=int, default=5, help="PCA features (section 6.1: 5)")
+    p.add_argument("--preprocess", default="none", choices=PREPROCESS_METHODS)
+    p.add_argument("--particles", type=int, default=None, help="default: the localizer configuration's")
+    p.add_argument("--j", type=int, default=None, help="nearest map entries J (default: configuration's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
+    p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_global)
+
+    from services.evaluation.tracking import DEFAULT_CHANGES, DEFAULT_PREPROCESS
+
+    p = eval_sub.add_parser("tracking", help="a drive through the lab under other light and scene changes")
+    p.add_argument("--world", default="lab")
+    p.add_argument("--duration", type=float, default=240.0, help="seconds of driving")
+    p.add_argument("--rate", type=float, default=5.0, help="camera frames (updates) per second")
+    p.add_argument("--features", type=int, default=20)
+    p.add_argument("--preprocess", default=DEFAULT_PREPROCESS, choices=(*PREPROCESS_METHODS, "all"),
+                   help=f"image preprocessing of the map (default {DEFAULT_PREPROCESS}, measured best); "
+                        "'all' compares the three")
+    p.add_argument("--lights", default="tube,bulb,natural", help="comma-separated lighting setups")
+    p.add_argument("--changes", default=",".join(DEFAULT_CHANGES),
+                   help="comma-separated scene changes unknown to the map ('none' for none)")
+    p.add_argument("--particles", type=int, default=None)
+    p.add_argument("--j", type=int, default=None)
+    p.add_argument("--no-global", action="store_true", help="skip the runs from the uniform belief")
+    p.add_argument("--no-recovery-comparison", action="store_true",
+                   help="skip the runs with kidnap recovery switched off")
+    p.add_argument("--trajectories", default=None, metavar="DIR",
+                   help="write estimated and true trajectories (TUM format) to DIR")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_tracking)
+
+    p = eval_sub.add_parser("leave-out", help="sensor-model error (eq. 10) on held-out frames of a dataset")
+    p.add_argument("dataset", help="dataset folder (e.g. from `lino-loc dataset import-tum`)")
+    p.add_argument("--every", type=int, default=5, help="hold out every K-th frame (rows 0, K, 2K, ...)")
+    p.add_argument("--features", type=int, default=20, help="PCA features D")
+    p.add_argument("--j", type=int, default=10, help="nearest map entries J (paper: 10)")
+    p.add_argument("--preprocess", default="none", choices=PREPROCESS_METHODS)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_leave_out)

@@ -1,0 +1,179 @@
+"""`lino-loc run [--config FILE]`: the localization daemon (issue 5; design.md 4.4).
+
+Which robot:
+- ``--config FILE``: that configuration (plus ``LINO_LOC__*`` environment overrides).
+- no ``--config``: the real robot's defaults when its devices are attached (a
+  ``/dev/ttyUSB*`` head adapter or an OAK-D); otherwise the SIMULATED robot
+  (``config/sim.toml``, or :meth:`ServiceConfig.simulated_defaults`): ``lino-loc sim`` is
+  started as a child process, its map is built once and cached (or reused), and the same
+  daemon runs with the real head and odometry drivers over the simulator's emulators.
+
+It prints where the poses are published and how to watch them (stderr), then serves until
+SIGTERM or SIGINT, which shut it down cleanly (threads stopped, pose saved, devices closed,
+the child simulator stopped) with exit status 0.
+
+BLAS threads: the filter's products are small; threaded OpenBLAS/OpenMP made them ~10x slower
+on the 2-core robot computer. The thread counts are read when numpy loads, which has
+happened by the time a command runs, so ``run`` re-executes itself once (same PID, as
+systemd's ``Type=notify`` expects) with ``OPENBLAS_NUM_THREADS=OMP_NUM_THREADS=1`` when they
+are not set already.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import logging
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from lino_loc.errors import LinoLocError
+
+log = logging.getLogger("lino_loc.service")
+
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+_REEXEC_MARK = "LINO_LOC_RUN_REEXEC"
+
+#: The simulated robot's configuration file shipped with the project.
+SIM_TOML = Path(__file__).resolve().parents[2] / "config" / "sim.toml"
+
+
+def _single_threaded_blas() -> None:
+    """Re-exec once with one BLAS/OpenMP thread when numpy was loaded without it."""
+    if all(os.environ.get(v) == "1" for v in THREAD_VARS):
+        return
+    for v in THREAD_VARS:
+        os.environ[v] = "1"
+    if os.environ.get(_REEXEC_MARK) or "numpy" not in sys.modules:
+        return
+    os.environ[_REEXEC_MARK] = "1"
+    argv = list(getattr(sys, "orig_argv", []) or [sys.executable, *sys.argv])
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execv(sys.executable, [sys.executable, *argv[1:]])
+    except OSError as exc:  # keep going with threaded BLAS rather than not at all
+        log.warning("could not re-exec with single-threaded BLAS: %s", exc)
+
+
+def robot_devices_present() -> list[str]:
+    """Names of the real robot's devices found on this machine (cheap checks first)."""
+    found = sorted(glob.glob("/dev/ttyUSB*"))
+    if found:
+        return found
+    try:
+        import depthai as dai  # noqa: PLC0415 - slow import, only when needed
+
+        devs = dai.Device.getAllAvailableDevices()
+        return [f"OAK-D {d.getDeviceId() if hasattr(d, 'getDeviceId') else d}" for d in devs]
+    except Exception:  # noqa: BLE001 - no depthai or no USB: no OAK-D
+        return []
+
+
+def choose_config(path: str | None) -> tuple[Any, Path | None, str]:
+    """(ServiceConfig, the file it came from, a one-line reason)."""
+    from services.config import ServiceConfig, load_config
+
+    if path is not None:
+        return load_config(path), Path(path), f"configuration {path}"
+    devices = robot_devices_present()
+    if devices:
+        return load_config(None), None, f"robot devices found ({', '.join(devices)}): built-in robot defaults"
+    if SIM_TOML.is_file():
+        return load_config(SIM_TOML), SIM_TOML, f"no robot devices found: the simulated robot ({SIM_TOML})"
+    return ServiceConfig.simulated_defaults(), None, "no robot devices found: the simulated robot (built-in)"
+
+
+def banner(cfg: Any, reason: str, sim: Any) -> str:
+    ep = cfg.endpoints
+    lines = [
+        "",
+        "lino-loc is running (" + reason + ")",
+        f"  poses      {ep.pub}   topics: pose (every frame), status (1 Hz), particles"
+        + (", truth" if sim is not None and cfg.publish.truth else ""),
+        f"  control    {ep.rep}   JSON requests, e.g. {{\"cmd\": \"status\"}}",
+        f"  map        {cfg.map.path}",
+        f"  saved pose {cfg.persistence.state_file}",
+    ]
+    if sim is not None and sim.info is not None:
+        i = sim.info
+        lines.append(f"  simulator  pid {sim.proc.pid}: head {i.head}, odometry {i.odometry}, camera {i.camera}")
+    lines += [
+        "  watch it:  lino-loc echo --topic pose" + (f" --endpoint {ep.pub}" if ep.pub != "tcp://127.0.0.1:5556" else ""),
+        "  stop it:   Ctrl-C (or SIGTERM)",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def run_daemon(args: argparse.Namespace) -> int:
+    _single_threaded_blas()
+    from services.daemon import Daemon
+    from services.sim_launcher import SimProcess, ensure_sim_map, needs_sim, resolve_auto
+
+    cfg, cfg_path, reason = choose_config(args.config)
+    logging.getLogger().setLevel(cfg.logging.level)
+    stop_requested: list[int] = []
+
+    def early_stop(signum: int, _frame: Any) -> None:
+        stop_requested.append(signum)
+        raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, early_stop) for s in (signal.SIGTERM, signal.SIGINT)}
+    sim: SimProcess | None = None
+    daemon: Daemon | None = None
+    try:
+        try:
+            if cfg.simulated:
+                amap, built = ensure_sim_map(cfg)
+            else:
+                from lino_loc.appearance_map import AppearanceMap
+
+                amap = AppearanceMap.load(cfg.map.path)
+            truth = None
+            if needs_sim(cfg):
+                sim = SimProcess(cfg_path, world=cfg.devices.camera.sim.world)
+                info = sim.start()
+                cfg = resolve_auto(cfg, info)
+                truth = info.truth
+            daemon = Daemon(cfg, amap, truth_endpoint=truth)
+            try:
+                daemon.start()
+            except OSError as exc:
+                raise LinoLocError(str(exc)) from None
+        except KeyboardInterrupt:
+            log.info("interrupted while starting")
+            return 0
+
+        def on_signal(signum: int, _frame: Any) -> None:
+            log.info("%s: shutting down", signal.Signals(signum).name)
+            daemon.request_stop()
+
+        for s in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(s, on_signal)
+        if stop_requested:
+            daemon.request_stop()
+        print(banner(cfg, reason, sim), file=sys.stderr, flush=True)
+        return daemon.run()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if sim is not None:
+            code = sim.stop()
+            log.info("simulator stopped (status %s)", code)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run the localization daemon (the simulated robot when no robot is attached)",
+        description=(
+            "Localize at frame rate and publish poses over ZeroMQ. Without --config and "
+            "without the robot's devices, runs on the simulated robot (`lino-loc sim`)."
+        ),
+    )
+    p.add_argument("--config", metavar="FILE", help="TOML configuration (see config/lino.toml)")
+    p.set_defaults(func=run_daemon)

@@ -1,0 +1,413 @@
+"""Active localization (paper, section 6.1, Fig. 3 and 4) in the simulated office.
+
+The experiment: an appearance map of the office (camera poses every ``step`` metres and
+``heading_step_deg`` degrees over the mapped area, ``features`` PCA features of the plain
+grey images under the mapping light), a particle filter of ``particles`` particles started
+from a uniform belief over the free space, the robot standing still at test positions that
+are NOT on the map grid (random free positions, at least ``min_grid_distance`` from every
+grid position, random headings). The first image is taken at a random candidate pan (the
+same for every strategy); then the camera is moved ``movements`` times to one of
+``n_actions`` pan angles over [pan_min, pan_max], chosen by
+
+* ``entropy``: argmin H(u) of :mod:`lino_loc.active_vision` over the pans other than the
+  present one (the head-movement cost breaks ties);
+* ``random``: uniform over the pans other than the present one;
+* ``sweep``: a fixed sweep, the pan index advancing by ``sweep_stride`` (mod n_actions) each
+  time (stride 7 of 22 = 99 degrees: consecutive views overlap little and 22 movements would
+  visit every pan).
+
+After each movement the filter updates with the image at the new pan (odometry increment
+zero, the pan known). After 0..movements movements the position error of the estimate and the
+success of section 6.1 (:func:`lino_loc.metrics.success`: the map pose nearest to the
+estimate is the one nearest to the truth, in grid units of position and heading) are
+recorded. Every run (position x run) starts from the same particles and first pan for all
+three strategies (seeded by (seed, position, run)).
+
+Views are rendered once per test position for all candidate pans (the process pool of
+:mod:`services.evaluation.views`) and reused across runs and strategies. With scene changes
+(objects the map does not know) the test views are rendered again with the changes applied
+and the whole experiment repeated on them; the map stays the same.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.sim.world import World, grid_poses, load_world
+from lino_loc.active_vision import ActionEvaluator, ActiveVisionConfig, belief_entropy
+from lino_loc.metrics import position_errors, success
+from lino_loc.motion_model import OdometryMotionModel
+from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
+from lino_loc.pca import fit_pca
+from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
+from services.evaluation.views import ViewSpec, render_vectors
+
+log = logging.getLogger(__name__)
+
+STRATEGIES: tuple[str, ...] = ("entropy", "random", "sweep")
+ProgressFn = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True)
+class ActiveSetup:
+    """Parameters of the experiment (defaults: the paper's section 6.1)."""
+
+    world: str = "office"
+    lighting: str = "tube"
+    step: float = 0.75
+    heading_step_deg: float = 15.0
+    features: int = 5
+    preprocess: str = "none"
+    j: int = 10
+    sigma_xy: float = 0.35
+    sigma_theta: float = 0.3
+    particles: int = 150
+    eval_particles: int = 150
+    roughen_xy: float = 0.0
+    roughen_theta: float = 0.0
+    inject: float = 0.0
+    n_actions: int = 22
+    predicted_neighbours: str = "all"
+    pan_min: float = -2.6
+    pan_max: float = 2.6
+    positions: int = 20
+    runs: int = 10
+    movements: int = 10
+    scene_changes: tuple[str, ...] = ()
+    min_grid_distance: float = 0.15
+    sweep_stride: int = 7
+    width: int = 320
+    height: int = 240
+    size: tuple[int, int] = (80, 60)
+    seed: int = 0
+    workers: int | None = None
+    strategies: tuple[str, ...] = STRATEGIES
+    snapshots: bool = True
+    filter: dict[str, Any] = field(default_factory=dict)
+
+    def sensor_config(self) -> SensorModelConfig:
+        return SensorModelConfig(j=self.j, sigma_xy=self.sigma_xy, sigma_theta=self.sigma_theta)
+
+    def active_config(self) -> ActiveVisionConfig:
+        return ActiveVisionConfig(
+            n_actions=self.n_actions,
+            pan_min=self.pan_min,
+            pan_max=self.pan_max,
+            max_particles=self.eval_particles,
+            predicted_neighbours=self.predicted_neighbours,
+        )
+
+    def filter_config(self) -> FilterConfig:
+        return FilterConfig(n_particles=self.particles, **self.filter)
+
+
+# --------------------------------------------------------------------------- data
+
+
+def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> np.ndarray:
+    """``setup.positions`` random robot poses (P, 3): free (also with the scene changes),
+    inside the mapped area, at least ``min_grid_distance`` from every grid position."""
+    rng = np.random.default_rng((setup.seed, 7))
+    xmin, xmax, ymin, ymax = world.mapped_area
+    grid_xy = np.unique(np.round(grid[:, :2], 6), axis=0)
+    out: list[np.ndarray] = []
+    for _ in range(10000):
+        c = np.column_stack(
+            [rng.uniform(xmin, xmax, 64), rng.uniform(ymin, ymax, 64), rng.uniform(-np.pi, np.pi, 64)]
+        )
+        ok = world.is_free(c[:, 0], c[:, 1]) & world.is_free(
+            c[:, 0], c[:, 1], scene_changes=setup.scene_changes
+        )
+        d = np.min(np.hypot(c[:, None, 0] - grid_xy[None, :, 0], c[:, None, 1] - grid_xy[None, :, 1]), axis=1)
+        ok &= d >= setup.min_grid_distance
+        out.extend(c[ok])
+        if len(out) >= setup.positions:
+            return np.asarray(out[: setup.positions])
+    raise RuntimeError("could not place the test positions")
+
+
+def render_map(setup: ActiveSetup, grid: np.ndarray, progress: ProgressFn | None) -> tuple[Any, np.ndarray]:
+    """PCA (eq. 1) of the grid views and the map features (N, d)."""
+    spec = ViewSpec(world=setup.world, lighting=setup.lighting, width=setup.width, height=setup.height,
+                    size=setup.size, preprocess=(setup.preprocess,), seed=setup.seed)
+    X = render_vectors(spec, grid, workers=setup.workers,
+                       progress=(lambda d, n: progress("map", d, n)) if progress else None)[setup.preprocess]
+    pca = fit_pca(X, setup.features, seed=setup.seed)
+    return pca, np.asarray(pca.project(X), dtype=np.float64)
+
+
+def render_tests(
+    setup: ActiveSetup, pca: Any, truths: np.ndarray, pans: np.ndarray, changes: tuple[str, ...],
+    progress: ProgressFn | None,
+) -> np.ndarray:
+    """Features (P, A, d) of the view at every test position and candidate pan."""
+    cams = np.repeat(truths[:, None, :], pans.size, axis=1)
+    cams[:, :, 2] = cams[:, :, 2] + pans[None, :]
+    spec = ViewSpec(world=setup.world, lighting=setup.lighting, scene_changes=changes, width=setup.width,
+                    height=setup.height, size=setup.size, preprocess=(setup.preprocess,),
+                    seed=setup.seed + 1000 + 17 * len(changes))
+    label = "tests" + ("+" + "+".join(changes) if changes else "")
+    X = render_vectors(spec, cams.reshape(-1, 3), workers=setup.workers,
+                       progress=(lambda d, n: progress(label, d, n)) if progress else None)[setup.preprocess]
+    return np.asarray(pca.project(X), dtype=np.float64).reshape(truths.shape[0], pans.size, -1)
+
+
+# --------------------------------------------------------------------------- runs
+
+_ctx: dict[str, Any] = {}
+
+
+def _init_worker(setup: ActiveSetup, map_poses: np.ndarray, map_features: np.ndarray) -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    world = load_world(setup.world)
+    model = NearestNeighbourSensorModel(map_poses, map_features, setup.sensor_config())
+    _ctx.update(setup=setup, world=world, model=model, evaluator=ActionEvaluator(model, setup.active_config()),
+                map_poses=map_poses)
+
+
+def roughen(pf: AuxiliaryParticleFilter, setup: ActiveSetup, mixture: Any = None, pan: float = 0.0) -> None:
+    """Investigation options, off by default (the paper's filter as the service runs it):
+    ``inject``: after an update, resample and replace that fraction of the particles by draws
+    from the image's sensor-model mixture (as the filter's AMCL-style recovery does, but at
+    every update); ``roughen_xy``/``roughen_theta``: Gaussian jitter of every particle
+    (roughening, Gordon, Salmond, Smith 1993). The robot stands still, so the odometry
+    increment is zero and the action model adds no diversity."""
+    if setup.inject > 0.0 and mixture is not None:
+        n = pf.particles.shape[0]
+        m = int(round(setup.inject * n))
+        idx = pf.rng.choice(n, size=n, p=pf.weights)
+        parts = pf.particles[idx]
+        parts[pf.rng.choice(n, size=m, replace=False)] = pf.sample_from_mixture(mixture, pan, m)
+        pf.set_particles(parts)
+    if setup.roughen_xy <= 0.0 and setup.roughen_theta <= 0.0:
+        return
+    n = pf.particles.shape[0]
+    jitter = pf.rng.standard_normal((n, 3)) * (setup.roughen_xy, setup.roughen_xy, setup.roughen_theta)
+    pf.set_particles(pf.particles + jitter, pf.log_weights)
+
+
+def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
+    """All runs and strategies at one test position: errors and successes (R, moves + 1) per
+    strategy, the H(u) evaluation times, and (position 0, run 0) particle snapshots."""
+    pos, truth, feats = args
+    setup: ActiveSetup = _ctx["setup"]
+    world: World = _ctx["world"]
+    model: NearestNeighbourSensorModel = _ctx["model"]
+    ev: ActionEvaluator = _ctx["evaluator"]
+    pans = setup.active_config().actions()
+    n_a = pans.size
+    step, hstep = setup.step, math.radians(setup.heading_step_deg)
+
+    def free(xy: np.ndarray) -> np.ndarray:
+        return world.is_free(xy[:, 0], xy[:, 1])
+
+    zero = np.zeros(3)
+    out: dict[str, Any] = {s: {"error": [], "success": [], "pans": []} for s in setup.strategies}
+    eval_ms: list[float] = []
+    snaps: dict[str, Any] = {}
+    for run in range(setup.runs):
+        a0 = int(np.random.default_rng((setup.seed, pos, run, 1)).integers(n_a))
+        for strat in setup.strategies:
+            pf = AuxiliaryParticleFilter(OdometryMotionModel(), model.bounds, setup.filter_config(),
+                                         free_space=free, rng=np.random.default_rng((setup.seed, pos, run)))
+            choice_rng = np.random.default_rng((setup.seed, pos, run, 2))
+            a = a0
+            ests, seq = [], [a]
+            mix = model.observe(feats[a])
+            pf.update(zero, float(pans[a]), mix)
+            roughen(pf, setup, mix, float(pans[a]))
+            ests.append(pf.estimate().pose)
+            if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
+                snaps["start"] = (pf.particles.copy(), pf.weights.copy())
+            for _ in range(setup.movements):
+                if strat == "entropy":
+                    t0 = time.process_time()
+                    values = ev.evaluate(pf.particles, pf.log_weights)
+                    eval_ms.append(1e3 * (time.process_time() - t0))
+                    a = values.best(float(pans[a]), ev.config.move_cost, exclude=[a])
+                elif strat == "random":
+                    a = int((a + 1 + choice_rng.integers(n_a - 1)) % n_a)
+                else:
+                    a = (a + setup.sweep_stride) % n_a
+                seq.append(a)
+                mix = model.observe(feats[a])
+                pf.update(zero, float(pans[a]), mix)
+                roughen(pf, setup, mix, float(pans[a]))
+                ests.append(pf.estimate().pose)
+            est = np.asarray(ests)
+            truths = np.repeat(truth[None, :], len(ests), axis=0)
+            out[strat]["error"].append(position_errors(est, truths))
+            out[strat]["success"].append(success(est, truths, _ctx["map_poses"], step, hstep))
+            out[strat]["pans"].append(seq)
+            if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
+                snaps["end"] = (pf.particles.copy(), pf.weights.copy())
+                snaps["entropy_start_end"] = (
+                    belief_entropy(*snaps["start"][:1], np.log(snaps["start"][1])),
+                    belief_entropy(pf.particles, pf.log_weights),
+                )
+    for s in out.values():
+        s["error"] = np.asarray(s["error"])
+        s["success"] = np.asarray(s["success"])
+    return {"pos": pos, "strategies": out, "eval_ms": eval_ms, "snapshots": snaps}
+
+
+def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
+    summary: dict[str, Any] = {}
+    for s in strategies:
+        err = np.concatenate([p["strategies"][s]["error"] for p in parts])  # (P*R, moves+1)
+        suc = np.concatenate([p["strategies"][s]["success"] for p in parts])
+        per_pos = np.array([p["strategies"][s]["success"].mean(axis=0) for p in parts])
+        summary[s] = {
+            "mean_error_m": [float(v) for v in err.mean(axis=0)],
+            "std_error_m": [float(v) for v in err.std(axis=0)],
+            "median_error_m": [float(v) for v in np.median(err, axis=0)],
+            "success": [float(v) for v in suc.mean(axis=0)],
+            "positions_all_success": [int(v) for v in (per_pos >= 1.0).sum(axis=0)],
+        }
+    return summary
+
+
+def run_condition(
+    setup: ActiveSetup, map_poses: np.ndarray, map_features: np.ndarray, truths: np.ndarray,
+    feats: np.ndarray, progress: ProgressFn | None, label: str,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    jobs = [(i, truths[i], feats[i]) for i in range(truths.shape[0])]
+    workers = setup.workers or os.cpu_count() or 1
+    parts: list[dict[str, Any]] = []
+    if workers == 1:
+        _init_worker(setup, map_poses, map_features)
+        it = map(run_position, jobs)
+        for part in it:
+            parts.append(part)
+            if progress:
+                progress(label, len(parts), len(jobs))
+    else:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
+                                 initargs=(setup, map_poses, map_features)) as pool:
+            for part in pool.map(run_position, jobs):
+                parts.append(part)
+                if progress:
+                    progress(label, len(parts), len(jobs))
+    parts.sort(key=lambda p: p["pos"])
+    return _summarize(parts, setup.strategies), parts
+
+
+def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The experiment. Returns (the JSON-ready result, extras for plotting)."""
+    t0 = time.perf_counter()
+    world = load_world(setup.world)
+    changes = world.check_changes(setup.scene_changes)
+    grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
+    pans = setup.active_config().actions()
+    pca, map_features = render_map(setup, grid, progress)
+    truths = place_test_positions(world, setup, grid)
+    conditions: list[tuple[str, tuple[str, ...]]] = [("none", ())]
+    if changes:
+        conditions.append(("+".join(changes), changes))
+    results: dict[str, Any] = {}
+    extras: dict[str, Any] = {"world": world, "grid": grid, "truths": truths, "pans": pans}
+    timing: list[float] = []
+    for name, ch in conditions:
+        feats = render_tests(setup, pca, truths, pans, ch, progress)
+        summary, parts = run_condition(setup, grid, map_features, truths, feats, progress,
+                                       "runs" + ("" if not ch else f" ({name})"))
+        results[name] = summary
+        extras[name] = parts
+        timing.extend(v for p in parts for v in p["eval_ms"])
+    base = results["none"]
+    out: dict[str, Any] = {
+        "positions": int(truths.shape[0]),
+        "runs": int(setup.runs),
+        "strategies": base,
+        "movements": int(setup.movements),
+        "setup": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(setup).items()
+                  if k not in ("workers", "snapshots")},
+        "map_entries": int(grid.shape[0]),
+        "test_poses": [[float(v) for v in t] for t in truths],
+        "entropy_eval_ms_median": float(np.median(timing)) if timing else None,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    if changes:
+        out["scene_changes"] = {"names": list(changes), "strategies": results["+".join(changes)]}
+    return out, extras
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[str]:
+    """Fig. 3 (error and success against movements, all strategies, std bands) per scene
+    condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    os.makedirs(out_dir, exist_ok=True)
+    files: list[str] = []
+    conds = [("none", result["strategies"])]
+    if "scene_changes" in result:
+        conds.append(("+".join(result["scene_changes"]["names"]), result["scene_changes"]["strategies"]))
+    colours = {"entropy": "tab:blue", "random": "tab:orange", "sweep": "tab:green"}
+    fig, axes = plt.subplots(2, len(conds), figsize=(6 * len(conds), 8), squeeze=False)
+    for c, (name, strategies) in enumerate(conds):
+        ax, ax2 = axes[0, c], axes[1, c]
+        for s, r in strategies.items():
+            m = np.asarray(r["mean_error_m"])
+            sd = np.asarray(r["std_error_m"])
+            x = np.arange(m.size)
+            ax.plot(x, m, "o-", color=colours.get(s), label=s)
+            ax.fill_between(x, np.maximum(m - sd, 0), m + sd, color=colours.get(s), alpha=0.15)
+            ax2.plot(x, 100 * np.asarray(r["success"]), "o-", color=colours.get(s), label=s)
+        ax.set_title(f"scene changes: {name}" if name != "none" else "as mapped")
+        ax.set_xlabel("camera movements")
+        ax.set_ylabel("position error (m), mean +- std")
+        ax.legend()
+        ax2.axhline(95, color="0.5", ls=":")
+        ax2.set_xlabel("camera movements")
+        ax2.set_ylabel("success (%), section 6.1")
+        ax2.set_ylim(0, 102)
+        ax2.legend()
+    fig.suptitle(f"Active localization, {result['positions']} positions x {result['runs']} runs (Fig. 3)")
+    fig.tight_layout()
+    f3 = os.path.join(out_dir, "active_fig3_error.png")
+    fig.savefig(f3, dpi=110)
+    plt.close(fig)
+    files.append(f3)
+
+    parts = extras.get("none") or []
+    snaps = parts[0]["snapshots"] if parts else {}
+    if "start" in snaps and "end" in snaps:
+        world: World = extras["world"]
+        truth = extras["truths"][0]
+        fig, axes = plt.subplots(1, 2, figsize=(14, 4.5))
+        for ax, key, title in ((axes[0], "start", "after the first image"),
+                               (axes[1], "end", f"after {result['movements']} movements (entropy)")):
+            world.plot_floor_plan(ax)
+            p, w = snaps[key]
+            shade = w / w.max()
+            ax.quiver(p[:, 0], p[:, 1], np.cos(p[:, 2]), np.sin(p[:, 2]), shade, cmap="viridis",
+                      scale=40, width=0.003)
+            ax.plot(extras["grid"][:, 0], extras["grid"][:, 1], ".", color="0.6", ms=2)
+            ax.quiver([truth[0]], [truth[1]], [math.cos(truth[2])], [math.sin(truth[2])], color="red",
+                      scale=15, width=0.008)
+            mean = np.average(p[:, :2], axis=0, weights=w)
+            sd = math.sqrt(np.average(np.sum((p[:, :2] - mean) ** 2, axis=1), weights=w))
+            ax.add_patch(plt.Circle(mean, sd, fill=False, color="magenta"))
+            ax.set_title(title)
+        fig.suptitle("Particles (brighter = heavier), truth in red, circle = position std (Fig. 4)")
+        fig.tight_layout()
+        f4 = os.path.join(out_dir, "active_fig4_particles.png")
+        fig.savefig(f4, dpi=110)
+        plt.close(fig)
+        files.append(f4)
+    return files

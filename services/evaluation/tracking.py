@@ -1,0 +1,242 @@
+"""Tracking in the simulated lab under changed light and unmodelled scene changes (paper, section 7:
+"localization error below 50 cm with un-modelled changes in the scene or the light").
+
+Setting: the lab world, a map every 50 cm and 10 deg (the lab survey grid of section 6.2,
+~4500 views) rendered under the mapping light ``tube`` with no scene changes; ``features``
+PCA features of the preprocessed images (``none`` / ``histeq`` / ``gradient``). The robot
+drives for ``duration`` seconds along a drive plan (:mod:`services.evaluation.drive`: a
+smooth path through the free space of the CHANGED scene, wheel odometry with slip, per-wheel
+scale errors and a wrong wheel base), the camera fixed (pan 0), one update per camera frame
+at ``rate`` Hz. The same drive is rendered under each light of ``lights`` (``tube`` is the
+reference: the mapping light) with the scene changes ``scene_changes`` applied (boxes added,
+furniture moved, people standing: none of it in the map).
+
+Per condition two runs of the :class:`lino_loc.localizer.Localizer` on the same frames:
+
+- from the KNOWN start pose (Gaussian, 10 cm / 5 deg): ``ate_rmse_m`` (RMSE of the position
+  errors), ``mean_error_m``, ``median_error_m``, ``max_error_m``, ``heading_rmse_deg`` over
+  every frame, and ``lost_fraction`` (frames in state ``lost``);
+- from the UNIFORM (global) belief: ``converged_after_s``, the first time from which the
+  position error stays below ``converged_m`` (0.5 m) for ``converged_hold_s`` (5 s), None if
+  never; ``global_mean_error_m``, the mean error after that time; and
+  ``converged_state_after_s``, when the filter itself first reported ``tracking``.
+
+``without_recovery`` repeats both runs with the kidnap recovery switched off
+(``filter.max_inject_fraction = 0``): under changed light the sensor model is often wrong in a
+consistent way, and particles injected from it can capture the belief (see the docs).
+
+``odometry`` gives the same errors for dead reckoning alone (integrated odometry from the
+true start), to show what the camera adds.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.sim.world import load_world
+from lino_loc.localizer import Localizer, LocalizerConfig
+from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
+from services.evaluation.drive import DriveConfig, DrivePlan, plan_drive
+from services.evaluation.trajectories import trajectory_names, write_tum
+from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PREPROCESS = "none"  # measured: see docs/evaluations_localization.md
+DEFAULT_CHANGES = ("boxes", "moved_furniture", "people")
+
+
+@dataclass(frozen=True)
+class TrackingSetup:
+    world: str = "lab"
+    step: float = 0.5
+    heading_step_deg: float = 10.0
+    features: int = 20
+    preprocess: tuple[str, ...] = (DEFAULT_PREPROCESS,)
+    lights: tuple[str, ...] = ("tube", "bulb", "natural")
+    scene_changes: tuple[str, ...] = DEFAULT_CHANGES
+    duration: float = 240.0
+    rate: float = 5.0
+    particles: int | None = None
+    j: int | None = None
+    start_sigma_xy: float = 0.1
+    start_sigma_deg: float = 5.0
+    converged_m: float = 0.5
+    converged_hold_s: float = 5.0
+    global_start: bool = True
+    compare_recovery: bool = True
+    width: int = 320
+    height: int = 240
+    size: tuple[int, int] = (80, 60)
+    seed: int = 0
+    workers: int | None = None
+
+
+def _config(setup: TrackingSetup, base: LocalizerConfig | None) -> LocalizerConfig:
+    cfg = (base or LocalizerConfig()).model_copy(deep=True)
+    if setup.particles is not None:
+        cfg.filter.n_particles = int(setup.particles)
+    if setup.j is not None:
+        cfg.sensor.j = int(setup.j)
+    return cfg
+
+
+def converged_after(stamps: np.ndarray, err: np.ndarray, below: float, hold_s: float) -> float | None:
+    """First stamp from which the error stays below ``below`` for ``hold_s`` seconds (or to the
+    end of the run, if that is shorter); None if there is none."""
+    good = err < below
+    n = len(err)
+    # bad_after[k]: index of the first bad frame at or after k (n if none)
+    bad_after = np.full(n + 1, n)
+    for k in range(n - 1, -1, -1):
+        bad_after[k] = bad_after[k + 1] if good[k] else k
+    for k in range(n):
+        if not good[k]:
+            continue
+        end = bad_after[k]
+        if end == n or stamps[end - 1] - stamps[k] >= hold_s:
+            return float(stamps[k])
+    return None
+
+
+def run_filter(
+    appearance_map: Any,
+    cfg: LocalizerConfig,
+    plan: DrivePlan,
+    images: np.ndarray,
+    start: np.ndarray | None,
+    start_cov: np.ndarray | None,
+    seed: Any,
+) -> tuple[np.ndarray, list[str]]:
+    """Estimates (K, 3) and states of one run over the frames of ``plan`` (global if start is None)."""
+    loc = Localizer(appearance_map, cfg, rng=np.random.default_rng(seed))
+    if start is None:
+        loc.start_global()
+    else:
+        loc.set_pose(start, start_cov)
+    inc = plan.increments
+    est = np.zeros((len(plan), 3))
+    states: list[str] = []
+    for k in range(len(plan)):
+        e = loc.update(inc[k], 0.0, images[k], stamp=float(plan.stamps[k]))
+        est[k] = e.pose
+        states.append(e.state)
+    return est, states
+
+
+def track_metrics(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    err = position_errors(est, truth)
+    return {
+        "ate_rmse_m": ate_rmse(est, truth),
+        "mean_error_m": float(err.mean()),
+        "median_error_m": float(np.median(err)),
+        "max_error_m": float(err.max()),
+        "heading_rmse_deg": math.degrees(heading_rmse(est, truth)),
+        "median_heading_error_deg": float(np.degrees(np.median(heading_errors(est, truth)))),
+    }
+
+
+def run(
+    setup: TrackingSetup,
+    config: LocalizerConfig | None = None,
+    maps: dict[str, Any] | None = None,
+    trajectories: Path | str | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Run the evaluation; ``maps`` (preprocess -> map) override the rendered survey maps (tests)."""
+    world = load_world(setup.world)
+    changes = world.check_changes(setup.scene_changes)
+    for light in setup.lights:
+        world.check_lighting(light)
+    cfg = _config(setup, config)
+    if maps is None:
+        maps = build_sim_maps(
+            setup.world, setup.step, setup.heading_step_deg, setup.features, tuple(setup.preprocess),
+            width=setup.width, height=setup.height, size=setup.size, seed=setup.seed, workers=setup.workers,
+            progress=(lambda d, n: progress("map", d, n)) if progress else None,
+        )
+    plan = plan_drive(world, DriveConfig(duration=setup.duration, camera_rate=setup.rate, scene_changes=changes),
+                      seed=setup.seed + 7)
+    truth = plan.truth
+    odo = plan.odometry
+    start_cov = np.diag([setup.start_sigma_xy**2, setup.start_sigma_xy**2, math.radians(setup.start_sigma_deg) ** 2])
+    out_dir = Path(trajectories) if trajectories is not None else None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_tum(out_dir / "truth.tum", plan.stamps, truth, comment=f"true robot poses, world {setup.world}")
+        write_tum(out_dir / "odometry.tum", plan.stamps, odo, comment="wheel odometry (dead reckoning)")
+    by_pre: dict[str, dict[str, Any]] = {pre: {} for pre in setup.preprocess}
+    for light in setup.lights:
+        cond = "+".join((light, *changes))
+        spec = ViewSpec(world=setup.world, lighting=light, scene_changes=changes, width=setup.width,
+                        height=setup.height, size=setup.size, seed=setup.seed + 11)
+        images = render_grey(spec, truth, workers=setup.workers,
+                             progress=(lambda d, n, c=cond: progress(f"render {c}", d, n)) if progress else None)
+        for pre in setup.preprocess:
+            amap = maps[pre]
+            est, states = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1))
+            res: dict[str, Any] = {"condition": cond, **track_metrics(est, truth)}
+            res["lost_fraction"] = float(np.mean([s == "lost" for s in states]))
+            if setup.global_start:
+                gest, gstates = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2))
+                gerr = position_errors(gest, truth)
+                t_c = converged_after(plan.stamps, gerr, setup.converged_m, setup.converged_hold_s)
+                res["converged_after_s"] = t_c
+                res["global_mean_error_m"] = (
+                    float(gerr[plan.stamps >= t_c].mean()) if t_c is not None else float(gerr.mean())
+                )
+                first_tr = next((float(plan.stamps[k]) for k, s in enumerate(gstates) if s == "tracking"), None)
+                res["converged_state_after_s"] = first_tr
+            if setup.compare_recovery:
+                cfg0 = cfg.model_copy(deep=True)
+                cfg0.filter.max_inject_fraction = 0.0
+                est0, states0 = run_filter(amap, cfg0, plan, images, truth[0], start_cov, (setup.seed, 1))
+                res0: dict[str, Any] = {**track_metrics(est0, truth),
+                                        "lost_fraction": float(np.mean([s == "lost" for s in states0]))}
+                if setup.global_start:
+                    gest0, _ = run_filter(amap, cfg0, plan, images, None, None, (setup.seed, 2))
+                    res0["converged_after_s"] = converged_after(
+                        plan.stamps, position_errors(gest0, truth), setup.converged_m, setup.converged_hold_s)
+                res["without_recovery"] = res0
+                if out_dir is not None:
+                    name = light if len(setup.preprocess) == 1 else f"{light}-{pre}"
+                    write_tum(out_dir / trajectory_names(name + "-no-recovery")[0], plan.stamps, est0,
+                              comment=f"estimate, {cond}, preprocess {pre}, known start, no kidnap recovery")
+            by_pre[pre][light] = res
+            if out_dir is not None:
+                name = light if len(setup.preprocess) == 1 else f"{light}-{pre}"
+                est_name, _ = trajectory_names(name)
+                write_tum(out_dir / est_name, plan.stamps, est,
+                          comment=f"estimate, {cond}, preprocess {pre}, known start")
+            log.info("tracking %s %s: mean %.3f m, max %.3f m, converged after %s s", cond, pre,
+                     res["mean_error_m"], res["max_error_m"], res.get("converged_after_s"))
+    head = setup.preprocess[0]
+    result: dict[str, Any] = {
+        "world": setup.world,
+        "map_entries": int(np.asarray(maps[head].poses).shape[0]),
+        "map_step_m": float(setup.step),
+        "map_heading_step_deg": float(setup.heading_step_deg),
+        "features": int(np.asarray(maps[head].channels["intensity"].features).shape[1]),
+        "preprocess": head,
+        "particles": int(cfg.filter.n_particles),
+        "J": int(cfg.sensor.j),
+        "duration_s": float(plan.stamps[-1]),
+        "rate_hz": float(setup.rate),
+        "frames": len(plan),
+        "path_length_m": plan.length_m,
+        "scene_changes": list(changes),
+        "start": f"known pose (sigma {setup.start_sigma_xy:.2f} m, {setup.start_sigma_deg:.1f} deg) for the "
+        "error keys; uniform (global) for converged_after_s",
+        "conditions": by_pre[head],
+        "odometry": track_metrics(odo, truth),
+    }
+    if len(setup.preprocess) > 1:
+        result["by_preprocess"] = by_pre
+    return result

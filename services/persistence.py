@@ -1,0 +1,139 @@
+"""The daemon's saved state: the last pose with its covariance, written atomically.
+
+As AMCL does with its ``initial_pose`` parameters, the daemon saves its latest pose estimate
+every ``persistence.save_period_s`` and at shutdown, and at the next start sets the
+filter's belief to a Gaussian with that mean and covariance instead of starting a global
+localization (:meth:`lino_loc.localizer.Localizer.set_pose`).
+
+File: one JSON object (:class:`SavedState`), written by :func:`save_state` to a temporary
+file in the same folder, flushed and ``fsync``-ed, then renamed over the old file (and the
+folder ``fsync``-ed): after a crash or ``kill -9`` the file holds either the old or the new
+state, never a mixture. :func:`load_state` returns None for a missing file and, with a
+warning, for a corrupt, foreign or invalid one (the daemon then localizes globally).
+
+Usage::
+
+    save_state(path, SavedState.from_estimate(pose, cov, stamp, "tracking"))
+    state = load_state(path)          # SavedState or None
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from services.messages import Covariance, Pose2D
+
+log = logging.getLogger("lino_loc.service.persistence")
+
+STATE_FORMAT = "lino-loc-state"
+STATE_VERSION = 1
+
+
+class SavedState(BaseModel):
+    """The persisted belief summary (what the next start uses as its initial belief)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    format: Literal["lino-loc-state"] = STATE_FORMAT
+    version: Literal[1] = STATE_VERSION
+    stamp: float = Field(ge=0.0, description="time of the estimate, s since the epoch")
+    saved_at: float = Field(ge=0.0, description="time the file was written")
+    pose: Pose2D
+    covariance: Covariance
+    state: str = "tracking"
+    map_checksum: str | None = None
+
+    @classmethod
+    def from_estimate(
+        cls,
+        pose: np.ndarray | list[float] | tuple[float, float, float],
+        covariance: np.ndarray | list[float],
+        stamp: float,
+        state: str = "tracking",
+        map_checksum: str | None = None,
+    ) -> SavedState:
+        p = [float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3)]
+        c = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
+        c = 0.5 * (c + c.T)
+        return cls(
+            stamp=float(stamp),
+            saved_at=time.time(),
+            pose=Pose2D(x=p[0], y=p[1], theta=p[2]),
+            covariance=[float(v) for v in c.reshape(-1)],
+            state=state,
+            map_checksum=map_checksum,
+        )
+
+    def mean(self) -> np.ndarray:
+        return np.array(self.pose.as_tuple(), dtype=np.float64)
+
+    def cov(self) -> np.ndarray:
+        return np.asarray(self.covariance, dtype=np.float64).reshape(3, 3)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def save_state(path: str | Path, state: SavedState) -> Path:
+    """Write ``state`` atomically (temp file + fsync + rename + fsync of the folder)."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
+    data = state.model_dump_json(indent=1).encode("utf-8") + b"\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    _fsync_dir(folder)
+    return path
+
+
+def load_state(path: str | Path) -> SavedState | None:
+    """The saved state, or None (missing file; corrupt or invalid file: with a warning)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        log.warning("%s: cannot read the saved state (%s); ignoring it", path, exc.strerror or exc)
+        return None
+    try:
+        return SavedState.model_validate_json(raw)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0] if exc.errors() else {"msg": "invalid"}
+        where = ".".join(str(p) for p in first.get("loc", ())) or "(file)"
+        log.warning(
+            "%s: corrupt or foreign saved state (%s: %s); ignoring it", path, where, first.get("msg")
+        )
+        return None
+    except ValueError as exc:
+        log.warning("%s: corrupt saved state (%s); ignoring it", path, exc)
+        return None

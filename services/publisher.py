@@ -1,0 +1,151 @@
+"""The daemon's ZeroMQ pose stream: a publisher that never blocks, and rate limits.
+
+:class:`Publisher` binds an XPUB socket (design.md 4.4: every message is two frames
+``[topic, json]``). It behaves as a PUB socket for the subscribers; XPUB is used because it
+also delivers the subscriptions, so the daemon knows how many clients are listening and
+to which topics (:attr:`Publisher.subscriptions`), and can skip serializing topics nobody
+wants (the particle set is the largest message).
+
+Never blocking (issue 5): each subscriber has a send queue of ``sndhwm`` messages
+(``ZMQ_SNDHWM``); when a subscriber does not read, ZeroMQ drops further messages *for that
+subscriber only* once its queue is full, and the other subscribers and the loop are not
+affected. Every send uses ``zmq.NOBLOCK``; a send that fails anyway (``EAGAIN`` or another
+error) is counted in :attr:`Publisher.dropped` and never raises into the loop.
+
+The socket is used from several threads (the loop publishes poses, the truth relay
+republishes the simulator's truth): sends are serialized by a lock. A send with NOBLOCK
+takes microseconds, so the lock is never held for long.
+
+:class:`RateLimiter` throttles the ``particles`` topic (``publish.particles_max_rate_hz``)
+and paces ``status`` (``publish.status_period_s``).
+
+Usage::
+
+    pub = Publisher(zmq.Context.instance(), "tcp://127.0.0.1:5556", sndhwm=100)
+    pub.publish("pose", PoseMessage(...))
+    limiter = RateLimiter(2.0)
+    if limiter.ready(time.monotonic()): pub.publish("particles", msg)
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from typing import Any
+
+import zmq
+from pydantic import BaseModel
+
+from services.messages import encode
+
+log = logging.getLogger("lino_loc.service.publisher")
+
+
+class RateLimiter:
+    """``ready(now)`` is True at most ``rate_hz`` times per second (0 = never)."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period = (1.0 / rate_hz) if rate_hz > 0 else None
+        self._next: float | None = None
+
+    @classmethod
+    def every(cls, period_s: float) -> RateLimiter:
+        return cls(1.0 / period_s)
+
+    def ready(self, now: float) -> bool:
+        if self.period is None:
+            return False
+        if self._next is None or now >= self._next:
+            # schedule from the previous slot when on time (no drift), from now when late
+            nxt = (self._next or now) + self.period
+            self._next = nxt if nxt > now else now + self.period
+            return True
+        return False
+
+
+class Publisher:
+    """Non-blocking XPUB publisher of ``[topic, json]`` messages (thread-safe)."""
+
+    def __init__(self, ctx: zmq.Context[Any], endpoint: str, sndhwm: int = 100) -> None:
+        self.endpoint = endpoint
+        self._lock = threading.Lock()
+        self._sock = ctx.socket(zmq.XPUB)
+        self._sock.setsockopt(zmq.SNDHWM, int(sndhwm))
+        self._sock.setsockopt(zmq.LINGER, 0)
+        # Report every (un)subscription, also duplicates, so counts stay right.
+        self._sock.setsockopt(zmq.XPUB_VERBOSER, 1)
+        try:
+            self._sock.bind(endpoint)
+        except zmq.ZMQError as exc:
+            self._sock.close(linger=0)
+            raise OSError(f"cannot bind the PUB socket to {endpoint}: {exc}") from exc
+        self.sent: Counter[str] = Counter()
+        self.dropped = 0
+        self.subscriptions: Counter[bytes] = Counter()
+        self._closed = False
+
+    # ---------------------------------------------------------------------------------
+    def _drain_subscriptions(self) -> None:
+        """Read the (un)subscription messages XPUB delivers (called with the lock held)."""
+        while True:
+            try:
+                msg = self._sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            except zmq.ZMQError:
+                return
+            if not msg:
+                continue
+            topic = bytes(msg[1:])
+            if msg[0] == 1:
+                self.subscriptions[topic] += 1
+            elif msg[0] == 0 and self.subscriptions[topic] > 0:
+                self.subscriptions[topic] -= 1
+                if self.subscriptions[topic] == 0:
+                    del self.subscriptions[topic]
+
+    def wanted(self, topic: str) -> bool:
+        """True if some subscriber's prefix matches ``topic`` (XPUB's view)."""
+        t = topic.encode("ascii")
+        with self._lock:
+            if self._closed:
+                return False
+            self._drain_subscriptions()
+            return any(t.startswith(p) for p, n in self.subscriptions.items() if n > 0)
+
+    @property
+    def n_subscriptions(self) -> int:
+        with self._lock:
+            if not self._closed:
+                self._drain_subscriptions()
+            return sum(self.subscriptions.values())
+
+    def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:
+        """Send raw frames without blocking; False (and counted) if ZeroMQ refused."""
+        name = topic or bytes(frames[0]).decode("ascii", errors="replace")
+        with self._lock:
+            if self._closed:
+                return False
+            try:
+                self._drain_subscriptions()
+                self._sock.send_multipart(frames, flags=zmq.NOBLOCK, copy=True)
+            except zmq.Again:
+                self.dropped += 1
+                return False
+            except zmq.ZMQError as exc:
+                self.dropped += 1
+                log.debug("publish %s failed: %s", name, exc)
+                return False
+        self.sent[name] += 1
+        return True
+
+    def publish(self, topic: str, message: BaseModel) -> bool:
+        """Publish a pydantic message on ``topic`` (validated against the topic's model)."""
+        return self.send_frames(encode(topic, message), topic)
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._sock.close(linger=0)

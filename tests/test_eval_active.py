@@ -1,0 +1,75 @@
+"""`lino-loc eval active` on a tiny office map (coarse grid, few positions): JSON contract,
+plots, argument errors. The full experiment's figures are in docs/evaluations_active.md."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from services.cli import main
+from services.evaluation.active import ActiveSetup, place_test_positions
+
+TINY = ["--step", "2.0", "--heading-step", "45", "--positions", "2", "--runs", "2", "--movements", "2",
+        "--actions", "4", "--particles", "60", "--workers", "1"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, object]:
+    import contextlib
+    import io
+
+    out_dir = tmp_path_factory.mktemp("plots")
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        status = main(["eval", "active", "--json", "--plot", str(out_dir), "--scene-changes", "boxes", *TINY])
+    assert status == 0
+    lines = [ln for ln in buf.getvalue().splitlines() if ln.strip()]
+    assert len(lines) == 1  # exactly one JSON object on stdout
+    return json.loads(lines[0]), out_dir
+
+
+def test_json_has_the_contract_keys(tiny_run: tuple[dict, object]) -> None:
+    res, _ = tiny_run
+    assert res["positions"] == 2 and res["runs"] == 2
+    assert set(res["strategies"]) == {"entropy", "random", "sweep"}
+    for block in (res["strategies"], res["scene_changes"]["strategies"]):
+        for r in block.values():
+            for key in ("mean_error_m", "std_error_m", "success"):
+                assert len(r[key]) == 3  # 0..2 movements
+            assert all(0.0 <= v <= 1.0 for v in r["success"])
+            assert all(v >= 0.0 for v in r["mean_error_m"] + r["std_error_m"])
+    assert res["scene_changes"]["names"] == ["boxes"]
+    # every strategy starts from the same first image and particles: identical at 0 movements
+    first = {s: (r["mean_error_m"][0], r["success"][0]) for s, r in res["strategies"].items()}
+    assert len(set(first.values())) == 1
+
+
+def test_plots_are_written(tiny_run: tuple[dict, object]) -> None:
+    _, out_dir = tiny_run
+    for name in ("active_fig3_error.png", "active_fig4_particles.png"):
+        f = out_dir / name  # type: ignore[operator]
+        assert f.is_file() and f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_test_positions_are_free_and_off_the_grid() -> None:
+    from drivers.sim.world import grid_poses, load_world
+
+    world = load_world("office")
+    setup = ActiveSetup(positions=15, scene_changes=("boxes",))
+    grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
+    t = place_test_positions(world, setup, grid)
+    assert t.shape == (15, 3)
+    assert world.is_free(t[:, 0], t[:, 1]).all()
+    assert world.is_free(t[:, 0], t[:, 1], scene_changes=("boxes",)).all()
+    d = np.hypot(t[:, None, 0] - grid[None, :, 0], t[:, None, 1] - grid[None, :, 1]).min(axis=1)
+    assert (d >= setup.min_grid_distance).all()
+
+
+@pytest.mark.parametrize("bad", [["--positions", "0"], ["--scene-changes", "no_such_change"]])
+def test_bad_arguments_exit_2(bad: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "active", *TINY, *bad]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.strip()

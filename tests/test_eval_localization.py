@@ -1,0 +1,129 @@
+"""Localization evaluations on tiny inputs: leave-out with a known answer, global and tracking
+machinery (lengths, bounds, files), the convergence time, and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from lino_loc.dataset import CameraInfo, DatasetMeta, DatasetWriter
+from lino_loc.localizer import LocalizerConfig
+from services.cli import main as cli_main
+from services.evaluation import global_loc, leave_out, tracking
+from services.evaluation.trajectories import read_tum
+from services.evaluation.views import build_sim_maps
+
+SMALL = {"width": 80, "height": 60, "size": (40, 30)}
+
+
+# --------------------------------------------------------------------------- leave-out
+
+
+def _line_dataset(root, n=21, spacing=0.1):
+    """Frames along a straight line (x = k * spacing, heading 0.3): the image is a sinusoid whose
+    phase is proportional to x (half a period over the whole line), so feature space is an arc
+    ordered like x and the nearest map frame in feature space is the nearest in x."""
+    cam = CameraInfo(width=32, height=24, fx=30, fy=30, cx=15.5, cy=11.5)
+    u = np.arange(32)[None, :] * np.ones((24, 1))
+    length = n * spacing
+    with DatasetWriter(root, DatasetMeta(name="line", camera=cam)) as w:
+        for k in range(n):
+            x = k * spacing
+            img = 128 + 100 * np.sin(2 * np.pi * u / 32 + np.pi * x / length)
+            w.add(np.clip(img, 0, 255).astype(np.uint8), (x, 1.0, 0.3))
+    return root
+
+
+def test_leave_out_on_a_line_finds_the_neighbouring_frames(tmp_path) -> None:
+    ds = _line_dataset(tmp_path / "line")
+    res = leave_out.run(ds, every=2, features=2, j=2, size=(32, 24))
+    assert res["frames_map"] == 10 and res["frames_test"] == 11 and res["J"] == 2
+    # held out: x = 0, 0.2, ..., 2.0; map: 0.1, 0.3, ..., 1.9 -> the nearest map frame is 0.1 m away
+    assert res["floor_m"]["mean"] == pytest.approx(0.1, abs=1e-9)
+    assert res["top1_error_m"]["mean"] == pytest.approx(0.1, abs=1e-9)
+    assert res["top1_error_m"]["std"] == pytest.approx(0.0, abs=1e-9)
+    assert res["error_m"]["mean"] == pytest.approx(0.1, abs=1e-9)  # best of J can't beat the floor
+    assert res["heading_error_deg"]["median"] == pytest.approx(0.0, abs=1e-9)
+    assert res["random_m"]["mean"] > 0.5  # chance level is far worse
+
+
+def test_leave_out_error_lies_between_floor_and_top1(tmp_path) -> None:
+    ds = _line_dataset(tmp_path / "line", n=30, spacing=0.05)
+    res = leave_out.run(ds, every=3, features=3, j=5, size=(32, 24))
+    assert res["floor_m"]["mean"] <= res["error_m"]["mean"] + 1e-12 <= res["top1_error_m"]["mean"] + 2e-12
+    assert set(res) >= {"J", "frames_map", "frames_test", "error_m", "top1_error_m", "heading_error_deg", "floor_m"}
+    assert set(res["error_m"]) == {"mean", "median", "std"}
+    assert set(res["heading_error_deg"]) == {"mean", "median"}
+
+
+def test_leave_out_user_errors(tmp_path) -> None:
+    from lino_loc.errors import LinoLocError
+
+    ds = _line_dataset(tmp_path / "line", n=8)
+    with pytest.raises(LinoLocError, match="--every"):
+        leave_out.run(ds, every=1)
+    with pytest.raises(LinoLocError, match="--features"):
+        leave_out.run(ds, every=2, features=10)
+
+
+def test_leave_out_cli_prints_one_json_object(tmp_path, capsys) -> None:
+    ds = _line_dataset(tmp_path / "line")
+    assert cli_main(["eval", "leave-out", str(ds), "--every", "2", "--features", "2", "--j", "3", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert len(out.strip().splitlines()) == 1
+    assert json.loads(out)["frames_test"] == 11
+    assert cli_main(["eval", "leave-out", str(tmp_path / "nope"), "--json"]) == 2
+
+
+# --------------------------------------------------------------------------- simulated runs
+
+
+@pytest.fixture(scope="module")
+def office_map():
+    return build_sim_maps("office", 1.5, 45.0, 4, ("none",), cache=False, workers=1, **SMALL)["none"]
+
+
+def test_global_eval_lists_have_one_value_per_update_and_are_bounded(office_map) -> None:
+    setup = global_loc.GlobalSetup(starts=2, updates=4, particles=200, workers=1, step=1.5,
+                                   heading_step_deg=45.0, **SMALL)
+    res = global_loc.run(setup, LocalizerConfig(), appearance_map=office_map)
+    assert res["starts"] == 2 and res["updates"] == 4 and res["particles"] == 200
+    for key in ("mean_error_m", "median_error_m", "success", "tracking", "median_heading_error_deg"):
+        assert len(res[key]) == 4, key
+    assert all(0.0 <= v <= 1.0 for v in res["success"] + res["tracking"])
+    diag = math.hypot(8.0 + 1.0, 2.5 + 1.0)  # mapped area plus the sensor model's margin
+    assert all(0.0 <= v <= diag for v in res["mean_error_m"] + res["median_error_m"])
+    assert res["map_entries"] == len(office_map)
+
+
+def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
+    setup = tracking.TrackingSetup(world="office", step=1.5, heading_step_deg=45.0, features=4,
+                                   preprocess=("none",), lights=("tube", "bulb"), scene_changes=("boxes",),
+                                   duration=2.0, rate=2.0, particles=100, workers=1, **SMALL)
+    res = tracking.run(setup, maps={"none": office_map}, trajectories=tmp_path / "traj")
+    assert res["frames"] == 5 and res["scene_changes"] == ["boxes"]
+    for light in ("tube", "bulb"):
+        r = res["conditions"][light]
+        for key in ("ate_rmse_m", "mean_error_m", "max_error_m", "heading_rmse_deg", "converged_after_s"):
+            assert key in r, key
+        assert 0.0 <= r["mean_error_m"] <= r["max_error_m"]
+        assert r["mean_error_m"] <= r["ate_rmse_m"] + 1e-12 <= r["max_error_m"] + 2e-12  # mean <= RMS <= max
+        assert "without_recovery" in r
+    s_t, truth = read_tum(tmp_path / "traj" / "truth.tum")
+    s_e, est = read_tum(tmp_path / "traj" / "tube.estimate.tum")
+    np.testing.assert_allclose(s_t, [0.0, 0.5, 1.0, 1.5, 2.0], atol=1e-9)
+    np.testing.assert_array_equal(s_t, s_e)
+    # the written estimate gives back the reported error
+    err = np.hypot(*(est[:, :2] - truth[:, :2]).T)
+    assert err.mean() == pytest.approx(res["conditions"]["tube"]["mean_error_m"], abs=1e-5)
+
+
+def test_converged_after_needs_the_error_to_stay_low() -> None:
+    t = np.arange(10.0)
+    err = np.array([3, 2, 0.1, 0.2, 2, 0.3, 0.2, 0.1, 0.1, 0.2])
+    assert tracking.converged_after(t, err, 0.5, 3.0) == 5.0  # 2-3 is too short, 5-9 holds
+    assert tracking.converged_after(t, err, 0.5, 100.0) == 5.0  # held to the end of the run
+    assert tracking.converged_after(t, np.full(10, 1.0), 0.5, 1.0) is None

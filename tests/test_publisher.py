@@ -1,0 +1,117 @@
+"""The pose stream publisher: never blocks on a subscriber that does not read, counts what
+it could not send, sees subscriptions (XPUB); and the rate limiter."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import zmq
+
+from services.messages import Pose2D, PoseMessage, decode
+from services.publisher import Publisher, RateLimiter
+
+COV = [0.1, 0, 0, 0, 0.1, 0, 0, 0, 0.01]
+
+
+def _pose(seq: int) -> PoseMessage:
+    return PoseMessage(stamp=1.0 + seq, seq=seq, pose=Pose2D(x=seq, y=0, theta=0), covariance=COV, state="tracking")
+
+
+def _wait_subscribed(pub: Publisher, topic: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pub.wanted(topic):
+        assert time.monotonic() < deadline, "subscription never arrived"
+        time.sleep(0.01)
+
+
+def test_rate_limiter() -> None:
+    r = RateLimiter(2.0)
+    fired = [t / 100 for t in range(0, 300) if r.ready(t / 100)]
+    assert fired == [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]
+    assert not any(RateLimiter(0.0).ready(t) for t in range(10))
+    late = RateLimiter.every(1.0)
+    assert late.ready(0.0) and late.ready(5.0) and not late.ready(5.5) and late.ready(6.0)
+
+
+def test_subscriber_receives_two_frames_and_xpub_sees_it() -> None:
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "inproc://pub-test-1", sndhwm=10)
+    sub = ctx.socket(zmq.SUB)
+    try:
+        sub.setsockopt(zmq.SUBSCRIBE, b"pose")
+        sub.connect("inproc://pub-test-1")
+        assert not pub.wanted("particles")
+        _wait_subscribed(pub, "pose")
+        assert pub.n_subscriptions == 1 and not pub.wanted("particles")
+        assert pub.publish("pose", _pose(7))
+        assert sub.poll(2000)
+        topic, msg = decode(sub.recv_multipart())
+        assert topic == "pose" and msg.seq == 7
+        assert pub.sent["pose"] == 1 and pub.dropped == 0
+    finally:
+        sub.close(0)
+        pub.close()
+        ctx.term()
+
+
+def test_a_subscriber_that_never_reads_does_not_block_or_starve_others() -> None:
+    """2000 messages of 20 kB (40 MB) to a subscriber that never reads and to one that
+    does: the stalled one's queue stops at the high-water mark (400 messages plus socket
+    buffers, well below 2000), the sends never block, and the reading subscriber gets
+    (almost) everything."""
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=400)
+    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    stalled = ctx.socket(zmq.SUB)
+    reader = ctx.socket(zmq.SUB)
+    try:
+        stalled.setsockopt(zmq.RCVHWM, 5)
+        stalled.setsockopt(zmq.RCVBUF, 4096)
+        for s in (stalled, reader):
+            s.setsockopt(zmq.SUBSCRIBE, b"")
+            s.connect(endpoint)
+        deadline = time.monotonic() + 5
+        while pub.n_subscriptions < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        payload = b"x" * 20_000
+        n = 2000
+        got = 0
+        last = None
+        t0 = time.monotonic()
+        worst = 0.0
+        for i in range(n):
+            ts = time.monotonic()
+            pub.send_frames([b"particles", payload + str(i).encode()])
+            worst = max(worst, time.monotonic() - ts)
+            while reader.poll(0):  # the live client keeps up
+                last = reader.recv_multipart()
+                got += 1
+            if i % 10 == 0:
+                time.sleep(0.001)  # a paced stream, as the loop's
+        elapsed = time.monotonic() - t0
+        assert worst < 0.5 and elapsed < 30.0  # no send waited for the stalled subscriber
+        assert sum(pub.sent.values()) + pub.dropped == n
+        end = time.monotonic() + 3
+        while time.monotonic() < end and reader.poll(300):
+            last = reader.recv_multipart()
+            got += 1
+        assert got > 0.8 * n  # the stalled subscriber does not starve the reader
+        assert last is not None and last[1].endswith(str(n - 1).encode())
+    finally:
+        stalled.close(0)
+        reader.close(0)
+        pub.close()
+        ctx.term()
+
+
+def test_bind_error_is_an_oserror_naming_the_endpoint() -> None:
+    ctx = zmq.Context()
+    a = Publisher(ctx, "inproc://pub-twice")
+    try:
+        with pytest.raises(OSError, match="inproc://pub-twice"):
+            Publisher(ctx, "inproc://pub-twice")
+    finally:
+        a.close()
+        ctx.term()
