@@ -21,7 +21,8 @@ is rendered first, which takes minutes and is not timed).
    sparse disparity matrix with the map builder's settings (20 components, float32 products,
    at most 100 EM iterations) plus the projection of every map (the features), median over
    ``build_repeats``; peak memory by tracemalloc (numpy buffers, beyond the input matrix) and
-   the process's peak RSS.
+   the process's peak RSS; wall and process CPU time (the fairer figure when other jobs share
+   the cores: see the load averages).
 
 Threads of the numeric libraries are limited to one before numpy is imported. Prints one JSON
 object with the machine (platform, processor, os.cpu_count, load average).
@@ -47,6 +48,7 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from drivers.sim.renderer import CameraModel, Renderer  # noqa: E402
@@ -58,6 +60,7 @@ from lino_loc.localizer import Localizer, LocalizerConfig  # noqa: E402
 from lino_loc.pca_missing import fit_pca_missing  # noqa: E402
 from services.evaluation.sensor_model_eval import (  # noqa: E402
     SensorModelSetup,
+    default_path_box,
     disparity_map,
     path_poses,
     survey_disparity_vectors,
@@ -82,7 +85,7 @@ def per_frame(setup: SensorModelSetup, frames: int, repeats: int, light: str) ->
     cfg = LocalizerConfig()
     loc_i = Localizer(imap, cfg)
     loc_f = Localizer(both, cfg)
-    path = path_poses(world, setup.spacing, setup.path_box, setup.path_exponent, avoid=poses)
+    path = path_poses(world, setup.spacing, default_path_box(world), setup.path_exponent, avoid=poses)
     pick = path[np.linspace(0, len(path) - 1, frames).round().astype(int)]
     renderer = Renderer(world, camera=CameraModel(width=setup.width, height=setup.height), lighting=light)
     views = [renderer.render(*p, stereo=True, rng=np.random.default_rng((7, k))) for k, p in enumerate(pick)]
@@ -90,18 +93,20 @@ def per_frame(setup: SensorModelSetup, frames: int, repeats: int, light: str) ->
     mi, md = loc_f.models["intensity"], loc_f.models["disparity"]
     fc = cfg.fusion
     t: dict[str, list[float]] = {k: [] for k in (
-        "intensity_only", "intensity_plus_disparity", "stereo_bm", "downsample", "em_project",
+        "intensity_only", "intensity_plus_disparity", "intensity_only_cpu", "intensity_plus_disparity_cpu", "stereo_bm", "downsample", "em_project",
         "intensity_project", "search_j10", "search_j5_intensity", "search_j5_disparity", "fuse")}
     for _ in range(repeats):
         for v in views:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             loc_i.observe(v.grey)
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             disp = compute_disparity(v.left, v.right, setup.stereo)
             loc_f.observe(v.grey, disp)
-            t2 = time.perf_counter()
+            t2, c2 = time.perf_counter(), time.process_time()
             t["intensity_only"].append(t1 - t0)
             t["intensity_plus_disparity"].append(t2 - t1)
+            t["intensity_only_cpu"].append(c1 - c0)
+            t["intensity_plus_disparity_cpu"].append(c2 - c1)
             # stages
             s0 = time.perf_counter()
             d = compute_disparity(v.left, v.right, setup.stereo)
@@ -127,6 +132,7 @@ def per_frame(setup: SensorModelSetup, frames: int, repeats: int, light: str) ->
                 t[key].append(b - a)
     out = {k: _ms(v) for k, v in t.items()}
     out["added"] = round(out["intensity_plus_disparity"] - out["intensity_only"], 3)
+    out["added_cpu"] = round(out["intensity_plus_disparity_cpu"] - out["intensity_only_cpu"], 3)
     return {"frames": frames, "repeats": repeats, "light": light, "image": [setup.width, setup.height],
             "map_entries": int(len(poses)), "search_index": {"intensity": mi.index_kind, "disparity": md.index_kind},
             "ms_median": out}
@@ -136,14 +142,15 @@ def build(setup: SensorModelSetup, repeats: int) -> dict:
     world = load_world(setup.world)
     poses = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
     X = survey_disparity_vectors(setup, world, poses)
-    times, peaks, iters, conv = [], [], [], []
+    times, cpu, peaks, iters, conv = [], [], [], [], []
     for _ in range(repeats):
         tracemalloc.start()
         tracemalloc.reset_peak()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         model = fit_pca_missing(X, setup.features, seed=setup.seed, max_iter=100, dtype=np.float32)
         model.project(X)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
         iters.append(model.n_iter)
@@ -157,6 +164,7 @@ def build(setup: SensorModelSetup, repeats: int) -> dict:
         "repeats": repeats,
         "fit_and_project_s": {"median": round(statistics.median(times), 2), "min": round(min(times), 2),
                               "max": round(max(times), 2)},
+        "fit_and_project_cpu_s_median": round(statistics.median(cpu), 2),
         "em_iterations": iters,
         "converged": conv,
         "peak_traced_mb": round(max(peaks) / 2**20, 1),
@@ -183,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
             "python": platform.python_version(),
             "numpy": np.__version__,
             "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+            "opencv_threads": cv2.getNumThreads(),
             "load_average_1min_start": round(os.getloadavg()[0], 2),
         },
     }

@@ -91,7 +91,26 @@ def _cpu_median() -> float:
     return round(statistics.median(_LAST_CPU), 3)
 
 
+def _reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS mark (VmHWM) of this process (Linux >= 4.0)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _hwm_mb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return _maxrss_mb()
+
+
 def _memory(fn) -> dict[str, float]:
+    reset = _reset_peak_rss()
     before = _rss_mb()
     tracemalloc.start()
     fn()
@@ -99,7 +118,7 @@ def _memory(fn) -> dict[str, float]:
     tracemalloc.stop()
     return {
         "tracemalloc_peak_mb": round(peak / 2**20, 1),
-        "rss_extra_mb": round(max(_maxrss_mb() - before, 0.0), 1),
+        "rss_extra_mb": round(max((_hwm_mb() if reset else _maxrss_mb()) - before, 0.0), 1),
     }
 
 

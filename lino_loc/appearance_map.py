@@ -515,7 +515,9 @@ def load_vectors(
     """Read, preprocess and area-average every image of ``dataset`` -> (N, w*h) float32.
 
     Files are decoded straight to grey (``cv2.IMREAD_GRAYSCALE``) by a thread pool
-    (OpenCV releases the GIL), in chunks written into one preallocated matrix.
+    (OpenCV releases the GIL; default 4 threads, at most 2 per core), in chunks written
+    into one preallocated matrix. PNG decoding is most of the cost (about 1 ms per
+    320 x 240 image); the preprocessing adds 0.1 (none) to 1-2 ms (gradient).
     """
     n = len(dataset)
     w, h = int(size[0]), int(size[1])
@@ -528,7 +530,7 @@ def load_vectors(
         return hi - lo
 
     bounds = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
-    nw = workers if workers is not None else min(4, os.cpu_count() or 1)
+    nw = workers if workers is not None else min(4, 2 * (os.cpu_count() or 1))
     done = 0
     if nw <= 1 or len(bounds) <= 1:
         for lo, hi in bounds:
@@ -561,6 +563,9 @@ def _project_rows(pca: PCA, X: np.ndarray, block: int = 1024) -> tuple[np.ndarra
         Y[lo : lo + block] = Xc @ pca.components.T
         ss += float(np.einsum("ij,ij->", Xc, Xc, dtype=np.float64))
     return Y, ss / n
+
+
+project_rows = _project_rows  # public name (services.evaluation.views uses the private one)
 
 
 def build_intensity_channel(

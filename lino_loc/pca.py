@@ -22,12 +22,14 @@ Three ways to compute ``W`` from the centred data ``Xc = X - mean``:
 ``svd``
     numpy's full thin SVD of Xc: the reference, O(N D min(N, D)).
 
-Why randomized is the default (``benchmarks/bench_map_build.py``, 2-core machine shared
-with other jobs, one BLAS thread): for N = 4000 x D = 4800 synthetic low-rank + noise data
-it took 1.3 s against 19 s for the Gram route and 193 s for numpy's SVD, with a few MB of
-extra memory where the others need the N x N (or N x D) factors. The Gram route is exact
-but its O(N^3) eigen-solve alone breaks the 15 s budget of the lab map build.
-Accuracy on the rendered lab survey (4500 images, 80 x 60, d = 20, against the exact
+Why randomized is the default (``benchmarks/bench_map_build.py --blas-threads 1``, on
+the 2-core development machine while other jobs kept its load average at 6-11, so wall
+times are 2-4x the CPU times): for N = 4000 x D = 4800 synthetic low-rank + noise data it
+needed 0.8-1.0 CPU s (median wall 2.8-3.5 s) and 18 MB of extra memory, the Gram route
+12 CPU s (wall 31 s) and 320 MB, numpy's full SVD 193 s wall. On the rendered lab survey
+(4500 x 4800): randomized 1.0 CPU s and 21 MB, Gram 17 CPU s and 394 MB. The Gram route
+is exact, but its O(N^3) eigen-solve alone would take most of the 15 s budget of the lab
+map build. Accuracy on the rendered lab survey (4500 images, 80 x 60, d = 20, against the exact
 subspace): the first 10 directions agree to < 4e-3 rad for every preprocessing, the
 captured variance is >= 99.97 % of the exact top-20 variance, and pairwise feature
 distances (what the sensor model uses) differ by < 0.02 % (none, histeq) and < 1.5 %

@@ -149,7 +149,7 @@ def import_tum(seq_dir: Path | str, out_dir: Path | str, camera: str = "freiburg
             height, width = first.shape[:2]
         image_rel = f"images/{Path(rgb_rel).name}"
         shutil.copyfile(src, out / image_rel)
-        row = {"image": image_rel, "x": repr(pose[0]), "y": repr(pose[1]), "theta": repr(pose[2]),
+        row = {"image": image_rel, "x": repr(float(pose[0])), "y": repr(float(pose[1])), "theta": repr(float(pose[2])),
                "depth": "", "condition": "tum", "stamp": f"{t:.6f}"}
         if depth_rel is not None and (seq / depth_rel).is_file():
             (out / "depth").mkdir(exist_ok=True)

@@ -147,6 +147,9 @@ class SimProcess:
             stderr=None,  # the child's logs go to our stderr
             preexec_fn=_pdeathsig,  # noqa: PLW1509 - fork-safe: one prctl call
             close_fds=True,
+            # its own session: a Ctrl-C on the terminal reaches the daemon only, which then
+            # stops the simulator after closing its devices (not both at once)
+            start_new_session=True,
             env=_child_env(),
         )
         assert self.proc.stdout is not None
@@ -248,6 +251,23 @@ def resolve_auto(cfg: ServiceConfig, info: SimInfo) -> ServiceConfig:
 # --------------------------------------------------------------------------------------------
 
 
+def _world_fingerprint(name: str) -> str:
+    from drivers.sim.world import load_world
+
+    return load_world(name).fingerprint
+
+
+def _build_main(config_json: str) -> int:
+    """Entry of the map-building child process (see :func:`ensure_sim_map`)."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        ensure_sim_map(ServiceConfig.model_validate_json(config_json))
+    except LinoLocError as exc:
+        print(f"lino-loc: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def sidecar_path(map_path: Path) -> Path:
     return map_path.with_name(map_path.name + ".build.json")
 
@@ -295,9 +315,28 @@ def _cached(map_path: Path, record: dict[str, Any]) -> AppearanceMap | None:
     return amap
 
 
-def ensure_sim_map(cfg: ServiceConfig, *, seed: int = 0) -> tuple[AppearanceMap, bool]:
+def ensure_sim_map(
+    cfg: ServiceConfig, *, seed: int = 0, in_subprocess: bool = False
+) -> tuple[AppearanceMap, bool]:
     """(the simulated world's map, whether it was built now). Without ``[map.build]`` the
-    file at ``map.path`` is just loaded."""
+    file at ``map.path`` is just loaded.
+
+    ``in_subprocess``: build in a child Python process (the daemon does this, so that the
+    survey's images and the PCA's work arrays never inflate its own resident memory)."""
+    if in_subprocess and cfg.map.build is not None:
+        world_fp = _world_fingerprint(cfg.map.build.world)
+        amap = _cached(Path(cfg.map.path), _build_record(cfg.map.build, world_fp))
+        if amap is not None:
+            log.info("using the cached simulated map %s (%d images)", cfg.map.path, len(amap))
+            return amap, False
+        code = subprocess.run(  # noqa: S603 - our own interpreter and module
+            [sys.executable, "-c", "import sys; from services.sim_launcher import _build_main; "
+             "sys.exit(_build_main(sys.stdin.read()))"],
+            input=cfg.model_dump_json().encode(), env=_child_env(), check=False,
+        ).returncode
+        if code != 0:
+            raise LinoLocError(f"building the simulated map {cfg.map.path} failed (status {code})")
+        return AppearanceMap.load(cfg.map.path), True
     from drivers.sim.renderer import CameraModel
     from drivers.sim.survey import run_survey
     from drivers.sim.world import load_world

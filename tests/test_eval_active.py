@@ -42,6 +42,9 @@ def test_json_has_the_contract_keys(tiny_run: tuple[dict, object]) -> None:
             assert all(0.0 <= v <= 1.0 for v in r["success"])
             assert all(v >= 0.0 for v in r["mean_error_m"] + r["std_error_m"])
     assert res["scene_changes"]["names"] == ["boxes"]
+    for diag in res["diagnostics"].values():
+        assert all(0.0 <= v <= 1.0 for v in diag.values())
+        assert "truth_cell_among_j_nearest" in diag and "initial_particle_in_truth_cell" in diag
     # every strategy starts from the same first image and particles: identical at 0 movements
     first = {s: (r["mean_error_m"][0], r["success"][0]) for s, r in res["strategies"].items()}
     assert len(set(first.values())) == 1

@@ -19,6 +19,7 @@ from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 from services.cli import main
 from services.evaluation.sensor_model_eval import (
     SensorModelSetup,
+    default_path_box,
     errors_eq10,
     errors_eq10_pose,
     fused_points,
@@ -81,9 +82,8 @@ def test_j_split_5_plus_5_gives_the_10_map_points_of_both_channels() -> None:
 # --------------------------------------------------------------------------- the path
 def test_path_is_regular_off_grid_free_and_headed_along() -> None:
     world = load_world("lab")
-    setup = SensorModelSetup()
     grid = grid_poses(world, 0.5, math.radians(10))
-    p = path_poses(world, 0.3, setup.path_box, setup.path_exponent, avoid=grid)
+    p = path_poses(world, 0.3, default_path_box(world), SensorModelSetup().path_exponent, avoid=grid)
     assert len(p) >= 50
     step = np.hypot(*np.diff(p[:, :2], axis=0).T)
     assert np.all(step <= 0.3 + 1e-9) and np.all(step > 0.25)  # chords of 0.3 m arcs

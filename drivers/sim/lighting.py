@@ -6,8 +6,8 @@ radiance of every surface of the world and packs it into one flat float32 *atlas
     radiance = albedo * E / pi + emission,
 
 with ``albedo`` the procedural texture (:mod:`drivers.sim.textures`, 1 cm texels by default)
-and ``E`` the irradiance, computed on a coarse lightmap (10 cm texels on walls, floor and
-ceiling, 5 cm on furniture) and upsampled bilinearly. ``E`` sums
+and ``E`` the irradiance, computed on a coarse lightmap (12 cm texels on walls, floor and
+ceiling, 10 cm on furniture) and upsampled bilinearly. ``E`` sums
 
 - point lights (bulbs, lamps) with an optional downward lobe ``cos^k``,
 - fluorescent tubes (line lights, sampled into points with a cosine lobe),

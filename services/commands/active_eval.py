@@ -30,6 +30,9 @@ def _table(result: dict) -> str:
         for s, r in strategies.items():
             lines.append(f"{s:<10}" + "".join(
                 f"{100 * r['success'][k]:>6.0f} ({r['mean_error_m'][k]:4.2f})" for k in range(n)))
+    for name, diag in result.get("diagnostics", {}).items():
+        lines.append(f"\ndiagnostics ({name}): " + ", ".join(
+            f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in diag.items()))
     if result.get("entropy_eval_ms_median") is not None:
         lines.append(f"\nH(u) evaluation: median {result['entropy_eval_ms_median']:.1f} ms CPU")
     return "\n".join(lines)
@@ -51,7 +54,8 @@ def _run(args: argparse.Namespace) -> int:
                         particles=args.particles, n_actions=args.actions, scene_changes=changes,
                         seed=args.seed, workers=args.workers, features=args.features, j=args.j,
                         step=args.step, heading_step_deg=args.heading_step, eval_particles=args.eval_particles,
-                        predicted_neighbours=args.predicted)
+                        predicted_neighbours=args.predicted, inject=args.inject,
+                        ideal=args.ideal)
     bar = Progress("active")
     result, extras = run(setup, progress=lambda label, d, n: bar.update(d, n, label=label))
     bar.close()
@@ -78,6 +82,11 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--eval-particles", type=int, default=150, help="particles used to evaluate H(u)")
     p.add_argument("--predicted", choices=("all", "leave_one_out"), default="all",
                    help="sensor model of a predicted observation (see lino_loc.active_vision)")
+    p.add_argument("--inject", type=float, default=0.0,
+                   help="investigation: after each update replace this fraction of the particles by draws "
+                   "from the image's sensor model (default 0: the filter as the service runs it)")
+    p.add_argument("--ideal", action="store_true",
+                   help="also compute the sensor model's upper bound (dense-grid posterior, no particles)")
     p.add_argument("--step", type=float, default=0.75, help="map grid step, metres")
     p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees")
     p.add_argument("--actions", type=int, default=22, help="candidate pan angles")

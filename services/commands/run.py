@@ -128,7 +128,7 @@ def run_daemon(args: argparse.Namespace) -> int:
     try:
         try:
             if cfg.simulated:
-                amap, built = ensure_sim_map(cfg)
+                amap, _ = ensure_sim_map(cfg, in_subprocess=True)
             else:
                 from lino_loc.appearance_map import AppearanceMap
 

@@ -44,10 +44,11 @@ import numpy as np
 
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.active_vision import ActionEvaluator, ActiveVisionConfig, belief_entropy
-from lino_loc.metrics import position_errors, success
+from lino_loc.metrics import nearest_map_index, position_errors, success
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.pca import fit_pca
+from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 from services.evaluation.views import ViewSpec, render_vectors
 
@@ -70,6 +71,7 @@ class ActiveSetup:
     j: int = 10
     sigma_xy: float = 0.35
     sigma_theta: float = 0.3
+    outlier_weight: float = 0.01
     particles: int = 150
     eval_particles: int = 150
     roughen_xy: float = 0.0
@@ -92,10 +94,12 @@ class ActiveSetup:
     workers: int | None = None
     strategies: tuple[str, ...] = STRATEGIES
     snapshots: bool = True
+    ideal: bool = False
     filter: dict[str, Any] = field(default_factory=dict)
 
     def sensor_config(self) -> SensorModelConfig:
-        return SensorModelConfig(j=self.j, sigma_xy=self.sigma_xy, sigma_theta=self.sigma_theta)
+        return SensorModelConfig(j=self.j, sigma_xy=self.sigma_xy, sigma_theta=self.sigma_theta,
+                                 outlier_weight=self.outlier_weight)
 
     def active_config(self) -> ActiveVisionConfig:
         return ActiveVisionConfig(
@@ -161,6 +165,56 @@ def render_tests(
     return np.asarray(pca.project(X), dtype=np.float64).reshape(truths.shape[0], pans.size, -1)
 
 
+def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, map_features: np.ndarray, truths: np.ndarray,
+                        pans: np.ndarray, feats: np.ndarray) -> dict[str, float]:
+    """How well single test views match the map: over all test views, the fraction whose
+    truth map cell (nearest grid pose to the camera pose, grid units) is the nearest map entry in
+    feature space, and is among the J nearest; the fraction of the J neighbours within one
+    grid step (position and heading) of the camera pose."""
+    model = NearestNeighbourSensorModel(grid, map_features, setup.sensor_config())
+    cams = np.repeat(truths[:, None, :], pans.size, axis=1)
+    cams[:, :, 2] = wrap_angle(cams[:, :, 2] + pans[None, :])
+    cams = cams.reshape(-1, 3)
+    cell = nearest_map_index(cams, grid, setup.step, math.radians(setup.heading_step_deg))
+    idx, _ = model.neighbours(feats.reshape(cams.shape[0], -1))
+    near = (np.hypot(grid[idx, 0] - cams[:, None, 0], grid[idx, 1] - cams[:, None, 1]) <= setup.step * 1.05) & (
+        np.abs(wrap_angle(grid[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
+    return {
+        "truth_cell_is_nearest_in_features": float(np.mean(idx[:, 0] == cell)),
+        "truth_cell_among_j_nearest": float(np.mean(np.any(idx == cell[:, None], axis=1))),
+        "j_neighbours_within_one_grid_step": float(near.mean()),
+    }
+
+
+def ideal_success(setup: ActiveSetup, grid: np.ndarray, map_features: np.ndarray, truths: np.ndarray,
+                  pans: np.ndarray, feats: np.ndarray, images: tuple[int, ...] = (1, 2, 4, 11)) -> dict[str, float]:
+    """Upper bound of the sensor model, without particles: the posterior of the first k images
+    (first pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped
+    area + 30 cm), its maximum as the estimate; success ratio over the test positions."""
+    model = NearestNeighbourSensorModel(grid, map_features, setup.sensor_config())
+    xmin, xmax = grid[:, 0].min() - 0.3, grid[:, 0].max() + 0.3
+    ymin, ymax = grid[:, 1].min() - 0.3, grid[:, 1].max() + 0.3
+    gx, gy, gh = np.meshgrid(np.arange(xmin, xmax + 1e-9, 0.1), np.arange(ymin, ymax + 1e-9, 0.1),
+                             np.radians(np.arange(-180.0, 180.0, 5.0)), indexing="ij")
+    dense = np.column_stack([gx.ravel(), gy.ravel(), gh.ravel()])
+    hstep = math.radians(setup.heading_step_deg)
+    out: dict[str, float] = {}
+    hits = {k: [] for k in images}
+    for pos in range(truths.shape[0]):
+        a0 = int(np.random.default_rng((setup.seed, pos, 0, 1)).integers(pans.size))
+        lp = np.zeros(dense.shape[0])
+        for k in range(max(images)):
+            a = (a0 + setup.sweep_stride * k) % pans.size
+            cam = dense.copy()
+            cam[:, 2] += pans[a]
+            lp += model.observe(feats[pos, a]).log_pdf(cam)
+            if k + 1 in hits:
+                hits[k + 1].append(bool(success(dense[int(np.argmax(lp))], truths[pos], grid, setup.step, hstep)[0]))
+    for k, v in hits.items():
+        out[str(k)] = float(np.mean(v))
+    return out
+
+
 # --------------------------------------------------------------------------- runs
 
 _ctx: dict[str, Any] = {}
@@ -211,8 +265,16 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
         return world.is_free(xy[:, 0], xy[:, 1])
 
     zero = np.zeros(3)
-    out: dict[str, Any] = {s: {"error": [], "success": [], "pans": []} for s in setup.strategies}
+    out: dict[str, Any] = {s: {"error": [], "success": [], "success_xy": [], "heading_error": [], "pans": []}
+                           for s in setup.strategies}
+    grid_xy = np.unique(np.round(_ctx["map_poses"][:, :2], 6), axis=0)
+
+    def nearest_xy(q: np.ndarray) -> np.ndarray:
+        return np.argmin(np.hypot(q[:, None, 0] - grid_xy[None, :, 0], q[:, None, 1] - grid_xy[None, :, 1]), axis=1)
+
     eval_ms: list[float] = []
+    covered: list[bool] = []
+    truth_cell = nearest_map_index(truth, _ctx["map_poses"], step, hstep)[0]
     snaps: dict[str, Any] = {}
     for run in range(setup.runs):
         a0 = int(np.random.default_rng((setup.seed, pos, run, 1)).integers(n_a))
@@ -220,6 +282,9 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
             pf = AuxiliaryParticleFilter(OdometryMotionModel(), model.bounds, setup.filter_config(),
                                          free_space=free, rng=np.random.default_rng((setup.seed, pos, run)))
             choice_rng = np.random.default_rng((setup.seed, pos, run, 2))
+            if strat == setup.strategies[0]:  # is some initial particle in the truth's map cell?
+                covered.append(bool(np.any(nearest_map_index(pf.particles, _ctx["map_poses"], step, hstep)
+                                           == truth_cell)))
             a = a0
             ests, seq = [], [a]
             mix = model.observe(feats[a])
@@ -247,6 +312,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
             truths = np.repeat(truth[None, :], len(ests), axis=0)
             out[strat]["error"].append(position_errors(est, truths))
             out[strat]["success"].append(success(est, truths, _ctx["map_poses"], step, hstep))
+            out[strat]["success_xy"].append(nearest_xy(est) == nearest_xy(truths))
+            out[strat]["heading_error"].append(np.abs(wrap_angle(est[:, 2] - truth[2])))
             out[strat]["pans"].append(seq)
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
                 snaps["end"] = (pf.particles.copy(), pf.weights.copy())
@@ -255,9 +322,9 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
                     belief_entropy(pf.particles, pf.log_weights),
                 )
     for s in out.values():
-        s["error"] = np.asarray(s["error"])
-        s["success"] = np.asarray(s["success"])
-    return {"pos": pos, "strategies": out, "eval_ms": eval_ms, "snapshots": snaps}
+        for key in ("error", "success", "success_xy", "heading_error"):
+            s[key] = np.asarray(s[key])
+    return {"pos": pos, "strategies": out, "eval_ms": eval_ms, "snapshots": snaps, "covered": covered}
 
 
 def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
@@ -266,12 +333,16 @@ def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict
         err = np.concatenate([p["strategies"][s]["error"] for p in parts])  # (P*R, moves+1)
         suc = np.concatenate([p["strategies"][s]["success"] for p in parts])
         per_pos = np.array([p["strategies"][s]["success"].mean(axis=0) for p in parts])
+        suc_xy = np.concatenate([p["strategies"][s]["success_xy"] for p in parts])
+        herr = np.concatenate([p["strategies"][s]["heading_error"] for p in parts])
         summary[s] = {
             "mean_error_m": [float(v) for v in err.mean(axis=0)],
             "std_error_m": [float(v) for v in err.std(axis=0)],
             "median_error_m": [float(v) for v in np.median(err, axis=0)],
             "success": [float(v) for v in suc.mean(axis=0)],
             "positions_all_success": [int(v) for v in (per_pos >= 1.0).sum(axis=0)],
+            "success_position_only": [float(v) for v in suc_xy.mean(axis=0)],
+            "median_heading_error_deg": [float(v) for v in np.degrees(np.median(herr, axis=0))],
         }
     return summary
 
@@ -316,12 +387,17 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     results: dict[str, Any] = {}
     extras: dict[str, Any] = {"world": world, "grid": grid, "truths": truths, "pans": pans}
     timing: list[float] = []
+    diagnostics: dict[str, Any] = {}
     for name, ch in conditions:
         feats = render_tests(setup, pca, truths, pans, ch, progress)
         summary, parts = run_condition(setup, grid, map_features, truths, feats, progress,
                                        "runs" + ("" if not ch else f" ({name})"))
         results[name] = summary
         extras[name] = parts
+        diagnostics[name] = feature_diagnostics(setup, grid, map_features, truths, pans, feats)
+        if setup.ideal:
+            diagnostics[name]["ideal_map_estimate_success"] = ideal_success(setup, grid, map_features, truths, pans, feats)
+        diagnostics[name]["initial_particle_in_truth_cell"] = float(np.mean([c for p in parts for c in p["covered"]]))
         timing.extend(v for p in parts for v in p["eval_ms"])
     base = results["none"]
     out: dict[str, Any] = {
@@ -330,10 +406,11 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
         "strategies": base,
         "movements": int(setup.movements),
         "setup": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(setup).items()
-                  if k not in ("workers", "snapshots")},
+                  if k not in ("workers", "snapshots", "ideal")},
         "map_entries": int(grid.shape[0]),
         "test_poses": [[float(v) for v in t] for t in truths],
         "entropy_eval_ms_median": float(np.median(timing)) if timing else None,
+        "diagnostics": diagnostics,
         "seconds": round(time.perf_counter() - t0, 1),
     }
     if changes:

@@ -72,6 +72,15 @@ ProgressFn = Callable[[str, int, int], None]
 #: from the survey's (seed, view index).
 TEST_SEED_OFFSET = 1000
 
+#: The box of the test loop per world (x_min, x_max, y_min, y_max): in the lab, round the two
+#: benches in the middle of the room, between them and the desks and cabinets along the walls.
+PATH_BOXES: dict[str, tuple[float, float, float, float]] = {"lab": (0.35, 8.65, 1.15, 3.75)}
+
+
+def default_path_box(world: World) -> tuple[float, float, float, float] | None:
+    """The test loop's box for ``world`` (None: the mapped area shrunk by 0.45 m)."""
+    return PATH_BOXES.get(world.name)
+
 
 @dataclass(frozen=True)
 class SensorModelSetup:
@@ -90,7 +99,7 @@ class SensorModelSetup:
     w_i: float = 0.5
     w_d: float = 0.5
     spacing: float = 0.3
-    path_box: tuple[float, float, float, float] | None = (0.35, 8.65, 1.15, 3.75)
+    path_box: tuple[float, float, float, float] | None = None  # None: PATH_BOXES or the mapped area
     path_exponent: float = 4.0
     width: int = 320
     height: int = 240
@@ -115,9 +124,8 @@ def path_poses(
     """Test poses every ``spacing`` m of arc length along a closed smooth loop, heading along it.
 
     The loop is the superellipse ``|x - cx|^p / a^p + |y - cy|^p / b^p = 1`` (p = ``exponent``)
-    inscribed in ``box`` = (xmin, xmax, ymin, ymax) (default: the mapped area shrunk by 0.45 m),
-    driven counter-clockwise; in the lab the default setup's box takes it round the two benches
-    in the middle of the room, between them and the desks and cabinets along the walls. Raises
+    inscribed in ``box`` = (xmin, xmax, ymin, ymax) (default: the mapped area shrunk by 0.45 m;
+    see :data:`PATH_BOXES`), driven counter-clockwise. Raises
     :class:`LinoLocError` when a test position is not free for a robot disc of ``radius``.
     ``avoid`` (K, 2+): positions the test poses should keep away from (the survey grid): the
     phase of the samples along the loop (one of 16 offsets in [0, spacing)) is the one that
@@ -293,8 +301,8 @@ def fused_points(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The map points of the disjunctive model (eq. 8) for each test pose.
 
-    y_i (M, d_i), y_d (M, d_d) -> (poses (M, j_i + j_d, 3), weighted mean distance helper:
-    the mixture's normalized component weights (M, j_i + j_d)). The points are the
+    y_i (M, d_i), y_d (M, d_d) -> (poses (M, j_i + j_d, 3), the fused mixture's normalized
+    component weights (M, j_i + j_d)). The points are the
     components of ``fuse({"intensity": ..., "disparity": ...}, fusion)``: the
     ``j_intensity`` nearest entries in intensity space and the ``j_disparity`` nearest in
     disparity space (a map entry may appear twice: once per channel).
@@ -330,6 +338,7 @@ def evaluate_condition(
     setup: SensorModelSetup,
 ) -> dict[str, Any]:
     """Eq. 10 along the path for one light: intensity J = j, fused j_i + j_d, and extras."""
+    truths = np.asarray(truths, dtype=np.float64)
     cfg = SensorModelConfig(j=setup.j)
     model_i = NearestNeighbourSensorModel(map_poses, map_feats_i, cfg)
     model_d = NearestNeighbourSensorModel(map_poses, map_feats_d, cfg, bounds=model_i.bounds)
@@ -390,7 +399,8 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
     for pre, amap in maps.items():
         if amap.poses.shape != poses.shape or not np.allclose(amap.poses, poses):
             raise LinoLocError(f"intensity map ({pre}) and disparity map have different poses")
-    truths = path_poses(world, setup.spacing, setup.path_box, setup.path_exponent, avoid=poses)
+    box = setup.path_box or default_path_box(world)
+    truths = path_poses(world, setup.spacing, box, setup.path_exponent, avoid=poses)
     log.info("sensor model: %d test poses along the path", len(truths))
     lim = grid_limit(truths, poses)
 
