@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -167,7 +167,12 @@ class Localizer:
             name: self.models[name].observe(y, j_of[name] if both else self.config.sensor.j)
             for name, y in feats.items()
         }
-        return fuse(mixtures, fc)
+        fused = fuse(mixtures, fc)
+        if "intensity" in mixtures and math.isnan(fused.novelty):
+            # the filter's kidnap recovery trusts the observation only when the image is
+            # familiar; the intensity channel says how familiar (see PoseMixture.novelty)
+            fused = replace(fused, novelty=mixtures["intensity"].novelty)
+        return fused
 
     # ----------------------------------------------------------------- filter
 

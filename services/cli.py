@@ -18,7 +18,12 @@ import os
 import sys
 from collections.abc import Sequence
 
-from lino_loc.errors import LinoLocError
+# One BLAS/OpenMP thread, set before numpy loads: the products here are small, and threaded
+# BLAS made them 4-20x slower on the 2-core machines measured (docs/architecture.md).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+from lino_loc.errors import LinoLocError  # noqa: E402
 
 # Order here is the order in `lino-loc --help`.
 COMMAND_MODULES: tuple[str, ...] = (

@@ -12,7 +12,7 @@ N = 200_000
 
 
 def _model(**kw: float) -> OdometryMotionModel:
-    base = dict(alpha1=0.0, alpha2=0.0, alpha3=0.0, alpha4=0.0)
+    base = dict(alpha1=0.0, alpha2=0.0, alpha3=0.0, alpha4=0.0, min_sigma_xy=0.0, min_sigma_theta=0.0)
     base.update(kw)
     return OdometryMotionModel(MotionModelConfig(**base))
 
@@ -104,3 +104,28 @@ def test_applies_in_the_particle_frame() -> None:
     np.testing.assert_allclose(
         m.predict_mean(start, between(odo_a, odo_b)), [[1.0, 2.4, np.pi / 2]], atol=1e-12
     )
+
+
+def test_noise_floor_spreads_a_still_robot() -> None:
+    """Zero increment: without the floor every particle stays put (sample impoverishment);
+    with it x, y, theta get independent N(0, floor^2) per update, also about a motion."""
+    p0 = np.tile([1.0, -2.0, 3.1], (N, 1))
+    still = _model(alpha1=0.1, alpha2=0.1, alpha3=0.1, alpha4=0.1)
+    assert np.all(still.sample(p0, np.zeros(3), np.random.default_rng(4)) == p0)
+    sxy, sth = 0.02, 0.01
+    m = _model(min_sigma_xy=sxy, min_sigma_theta=sth)
+    out = m.sample(p0, np.zeros(3), np.random.default_rng(5))
+    d = out - p0
+    d[:, 2] = wrap_angle(d[:, 2])
+    np.testing.assert_allclose(d.mean(axis=0), 0.0, atol=5 * sxy / np.sqrt(N))
+    np.testing.assert_allclose(d.var(axis=0), [sxy**2, sxy**2, sth**2], rtol=0.02)
+    assert abs(np.corrcoef(d[:, 0], d[:, 2])[0, 1]) < 0.02
+    # about a pure rotation the floor's variance adds to the odometry's
+    a1 = 0.05
+    m2 = _model(alpha1=a1, min_sigma_xy=sxy, min_sigma_theta=sth)
+    out2 = m2.sample(np.zeros((N, 3)), np.array([0.0, 0.0, 1.0]), np.random.default_rng(6))
+    assert out2[:, 2].var() == pytest.approx(a1 + sth**2, rel=0.02)
+    assert out2[:, 0].var() == pytest.approx(sxy**2, rel=0.02)
+    # defaults: a floor of 1 cm and 0.5 deg is on
+    cfg = MotionModelConfig()
+    assert cfg.min_sigma_xy == pytest.approx(0.01) and np.degrees(cfg.min_sigma_theta) == pytest.approx(0.5, abs=0.01)

@@ -10,6 +10,7 @@ import importlib
 
 EVAL_MODULES: tuple[str, ...] = (
     "services.commands.illumination_eval",
+    "services.commands.single_view_eval",
     "services.commands.stereo_eval",
     "services.commands.active_eval",
     "services.commands.localization_eval",
