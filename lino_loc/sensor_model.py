@@ -203,8 +203,9 @@ class PoseMixture:
             ]
         )
 
-    def _component_terms(self, x: FloatArray) -> FloatArray:
-        """(K, M) log of w_k phi_k(x_m), components along the first axis (fast reductions)."""
+    def _component_terms(self, x: FloatArray, extra_rows: int = 0) -> FloatArray:
+        """(K, M) log of w_k phi_k(x_m), components along the first axis (fast reductions);
+        ``extra_rows`` appends uninitialized rows for the caller (K + extra_rows, M)."""
         phi = np.empty((6, x.shape[0]))
         phi[0:2] = x[:, 0:2].T
         np.cos(x[:, 2], out=phi[2])
@@ -214,7 +215,11 @@ class PoseMixture:
         phi[5] = 1.0
         # einsum, not a BLAS product: a threaded BLAS took 40 ms instead of 0.3 ms for
         # M = 10000 on this shared 2-core machine.
-        return np.einsum("ik,im->km", self._psi, phi)
+        if not extra_rows:
+            return np.einsum("ik,im->km", self._psi, phi)
+        out = np.empty((self.n_components + extra_rows, x.shape[0]))
+        np.einsum("ik,im->km", self._psi, phi, out=out[: self.n_components])
+        return out
 
     def component_log_pdf(self, poses: ArrayLike) -> FloatArray:
         """(M, K) log of w_k phi_k(x_m), without outlier and scale.
@@ -231,19 +236,22 @@ class PoseMixture:
     def log_pdf(self, poses: ArrayLike) -> FloatArray:
         """Log density at poses (M, 3) -> (M,), including the outlier component and log_scale."""
         x = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        c = self._component_terms(x)
+        if self.outlier_log_weight > -math.inf:
+            # the outlier term is one more row of the same log-sum-exp (no logaddexp pass):
+            # log of its weight times the uniform density inside the bounds, -inf outside
+            b = self.bounds
+            assert b is not None
+            c = self._component_terms(x, extra_rows=1)
+            inside = (x[:, 0] >= b.x_min) & (x[:, 0] <= b.x_max)
+            inside &= (x[:, 1] >= b.y_min) & (x[:, 1] <= b.y_max)
+            c[-1] = np.where(inside, self.outlier_log_weight + b.log_uniform_density, -np.inf)
+        else:
+            c = self._component_terms(x)
         top = c.max(axis=0)
         c -= top
         np.exp(c, out=c)
         lp = np.log(c.sum(axis=0))
         lp += top
-        if self.outlier_log_weight > -math.inf:
-            assert self.bounds is not None
-            inside = self.bounds.contains(x[:, :2])
-            lo = np.where(
-                inside, self.outlier_log_weight + self.bounds.log_uniform_density, -np.inf
-            )
-            lp = np.logaddexp(lp, lo)
         if self.log_scale:
             lp += self.log_scale
         return lp
@@ -317,6 +325,8 @@ class SensorModelConfig(BaseModel):
 def lambda_log_weights(dist2: ArrayLike, scale: str = "median", factor: float = 1.0) -> FloatArray:
     """log lambda_j = log softmax(-d_j^2 / (2 s^2)) over the last axis (see module docstring)."""
     d2 = np.asarray(dist2, dtype=np.float64)
+    if d2.ndim == 1 and d2.size and scale != "uniform":
+        return _lambda_log_weights_1d(d2, scale, factor)
     if scale == "uniform":
         return np.full(d2.shape, -math.log(d2.shape[-1]))
     if scale == "median":  # (np.median costs ~40 us per call; J is small, so sort)
@@ -332,6 +342,27 @@ def lambda_log_weights(dist2: ArrayLike, scale: str = "median", factor: float = 
     s2 = np.where(s2 > 0, s2, np.max(d2, axis=-1, keepdims=True))
     logits = np.where(s2 > 0, -d2 / (2.0 * np.where(s2 > 0, s2, 1.0)), 0.0)
     return logits - logsumexp(logits, axis=-1, keepdims=True)
+
+
+def _lambda_log_weights_1d(d2: FloatArray, scale: str, factor: float) -> FloatArray:
+    """:func:`lambda_log_weights` for one observation (J,), with scalar arithmetic for the scale
+    (the general version's array reductions dominated its cost at J = 10)."""
+    if scale == "median":
+        srt = np.sort(d2)
+        k = srt.size
+        s2 = 0.5 * (float(srt[(k - 1) // 2]) + float(srt[k // 2]))
+    elif scale == "nearest":
+        s2 = float(d2.min())
+    else:
+        raise ValueError(f"unknown lambda scale {scale!r}")
+    s2 *= factor**2
+    if not s2 > 0.0:
+        s2 = float(d2.max())
+    if not s2 > 0.0:
+        return np.full(d2.shape, -math.log(d2.size))
+    logits = d2 * (-0.5 / s2)
+    logits -= logits.max()
+    return logits - math.log(float(np.exp(logits).sum()))
 
 
 class NearestNeighbourSensorModel:
@@ -366,6 +397,7 @@ class NearestNeighbourSensorModel:
         self.bounds = bounds or Bounds.from_poses(self.poses, self.config.map_margin)
         self._sqnorm = np.einsum("ij,ij->i", self.features, self.features)
         self._reference_distance: float | None = None
+        self._widths: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._tree = None
         self.index_kind = "brute"
         if self.config.index == "kdtree" or (
@@ -508,11 +540,16 @@ class NearestNeighbourSensorModel:
         lam = lambda_log_weights(dist2, c.lambda_scale, c.lambda_scale_factor)  # normalized
         k = ii.size
         ow = c.outlier_weight
+        if k not in self._widths:  # constant per J: built once (read-only)
+            sxy, sth = np.full(k, c.sigma_xy), np.full(k, c.sigma_theta)
+            sxy.flags.writeable = sth.flags.writeable = False
+            self._widths[k] = (sxy, sth)
+        sxy, sth = self._widths[k]
         return PoseMixture(
             self.poses[ii],
             lam + math.log1p(-ow),
-            np.full(k, c.sigma_xy),
-            np.full(k, c.sigma_theta),
+            sxy,
+            sth,
             math.log(ow) if ow > 0.0 else -math.inf,
             self.bounds,
             0.0,

@@ -13,6 +13,7 @@ from lino_loc.metrics import (
     position_errors,
     sensor_model_error,
     success,
+    success_pose,
 )
 
 STEP, HSTEP = 0.75, np.radians(15)
@@ -25,25 +26,52 @@ def _grid():
     return np.column_stack([X.ravel(), Y.ravel(), T.ravel()])
 
 
-def test_success_same_cell() -> None:
+def test_success_pose_same_cell() -> None:
     m = _grid()
     truth = np.array([[1.6, 0.7, 0.3]])
     same = np.array([[1.4, 0.8, 0.2]])  # nearest map pose (1.5, 0.75, 15 deg) for both
     other_pos = np.array([[2.0, 0.7, 0.3]])  # nearest x is 2.25
     other_head = np.array([[1.6, 0.7, 0.45]])  # nearest heading 30 deg
-    assert success(same, truth, m, STEP, HSTEP)[0]
-    assert not success(other_pos, truth, m, STEP, HSTEP)[0]
-    assert not success(other_head, truth, m, STEP, HSTEP)[0]
-    assert success(truth, truth, m, STEP, HSTEP)[0]
-    res = success(np.vstack([same, other_pos]), np.vstack([truth, truth]), m, STEP, HSTEP)
+    assert success_pose(same, truth, m, STEP, HSTEP)[0]
+    assert not success_pose(other_pos, truth, m, STEP, HSTEP)[0]
+    assert not success_pose(other_head, truth, m, STEP, HSTEP)[0]
+    assert success_pose(truth, truth, m, STEP, HSTEP)[0]
+    res = success_pose(np.vstack([same, other_pos]), np.vstack([truth, truth]), m, STEP, HSTEP)
     assert res.tolist() == [True, False]
+
+
+def test_success_is_by_nearest_map_position() -> None:
+    """The paper's words: the closest training POINT (position) to a and to c; heading ignored."""
+    m = _grid()
+    truth = np.array([[1.6, 0.7, 0.3]])
+    other_head = np.array([[1.6, 0.7, 0.3 + np.pi]])  # same position, opposite heading
+    near_pos = np.array([[1.85, 0.45, -2.0]])  # nearest position still (1.5, 0.75)
+    other_pos = np.array([[1.9, 0.7, 0.3]])  # nearest x is 2.25: 0.35 m < 0.4 m away
+    res = success(np.vstack([other_head, near_pos, other_pos, truth]), np.repeat(truth, 4, axis=0), m)
+    assert res.tolist() == [True, True, False, True]
+    assert not success_pose(other_head, truth, m, STEP, HSTEP)[0]  # the strict variant differs
+    # map positions given directly (K, 2) give the same answer
+    xy = np.unique(m[:, :2], axis=0)
+    assert success(np.vstack([other_head, near_pos, other_pos]), np.repeat(truth, 3, axis=0), xy).tolist() == [
+        True, True, False]
+    # tie: exactly between two map positions counts when the truth's nearest is one of them
+    mid = np.array([[1.875, 0.75, 0.0]])
+    assert success(mid, np.array([[2.1, 0.8, 0.0]]), m)[0]
+    assert success(mid, truth, m)[0]
+    # pose success implies position success (random poses)
+    rng = np.random.default_rng(0)
+    e = np.column_stack([rng.uniform(0, 3, 500), rng.uniform(0, 1.5, 500), rng.uniform(-np.pi, np.pi, 500)])
+    t = e + rng.normal(0, [0.3, 0.3, 0.3], (500, 3))
+    sp, ss = success_pose(e, t, m, STEP, HSTEP), success(e, t, m)
+    assert np.all(ss[sp]) and ss.sum() > sp.sum()
 
 
 def test_success_across_the_angle_cut() -> None:
     m = _grid()
     truth = np.array([[1.5, 0.75, np.pi - 0.02]])
     est = np.array([[1.5, 0.75, -np.pi + 0.02]])  # both nearest to heading -pi (== pi)
-    assert success(est, truth, m, STEP, HSTEP)[0]
+    assert success_pose(est, truth, m, STEP, HSTEP)[0]
+    assert success(est, truth, m)[0]
     idx = nearest_map_index(np.vstack([truth, est]), m, STEP, HSTEP)
     assert idx[0] == idx[1]
 

@@ -198,3 +198,34 @@ def test_log_likelihood_matrix_matches_observe() -> None:
     assert mat.shape == (6, 40)
     for b in range(6):
         np.testing.assert_allclose(mat[b], model.observe(ys[b]).log_pdf(x), rtol=1e-10, atol=1e-10)
+
+
+def test_lambda_weights_of_one_observation_match_the_batch_version() -> None:
+    rng = np.random.default_rng(3)
+    for k in (1, 2, 7, 10):
+        d2 = rng.uniform(0.1, 5.0, k)
+        for scale in ("median", "nearest"):
+            np.testing.assert_allclose(
+                lambda_log_weights(d2, scale, 1.5),
+                lambda_log_weights(d2[None, :], scale, 1.5)[0],
+                rtol=1e-12,
+                atol=1e-12,
+            )
+    # exact match with a zero median: falls back to the largest distance, stays finite
+    assert np.all(np.isfinite(lambda_log_weights(np.array([0.0, 0.0, 0.0, 4.0]), "median")))
+    np.testing.assert_allclose(np.exp(lambda_log_weights(np.zeros(4), "median")), 0.25)
+
+
+def test_novelty_is_relative_to_the_maps_own_neighbour_distance() -> None:
+    poses, feats = _random_map()
+    model = NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=5))
+    ref = model.reference_distance
+    rows = np.random.default_rng(0).choice(len(feats), size=min(len(feats), 500), replace=False)
+    d = np.sqrt(((feats[rows, None, :] - feats[None, :, :]) ** 2).sum(-1))
+    d[np.arange(len(rows)), rows] = np.inf
+    assert ref == pytest.approx(float(np.median(d.min(axis=1))), rel=1e-9)
+    assert model.observe(feats[3]).novelty == pytest.approx(0.0, abs=1e-6)
+    far = feats[3] + 10.0 * ref / np.sqrt(feats.shape[1])  # 10 reference distances away
+    assert model.observe(far).novelty > 5.0
+    mix = model.observe(feats[3])
+    assert mix.with_log_weight(-1.0).novelty == mix.novelty

@@ -18,7 +18,7 @@ def test_single_view_small_run(tmp_path, monkeypatch):
     setup = SingleViewSetup(step=1.5, heading_step_deg=45.0, views=24, width=80, height=60, workers=1)
     r = run(setup)
     assert r["views"] == 24 and r["J"] == 10
-    for key in ("top1_success", "success_within_J", "chance_success"):
+    for key in ("top1_success", "success_within_J", "chance_success", "top1_success_pose", "success_within_J_pose"):
         assert 0.0 <= r[key] <= 1.0
     # The J nearest include the nearest, and the appearance beats chance by a wide margin.
     assert r["success_within_J"] >= r["top1_success"]

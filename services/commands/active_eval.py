@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 
 from lino_loc.errors import LinoLocError
 from services.evaluation.active import STRATEGIES, ActiveSetup, plot, run
@@ -25,11 +26,12 @@ def _table(result: dict) -> str:
                        result["scene_changes"]["strategies"]))
     for title, strategies in blocks:
         n = len(next(iter(strategies.values()))["success"])
-        lines.append(f"\n{title}: success % (mean error m) after k movements")
+        lines.append(f"\n{title}: success % position / pose cell (mean error m) after k movements")
         lines.append(f"{'k':<10}" + "".join(f"{k:>14}" for k in range(n)))
         for s, r in strategies.items():
             lines.append(f"{s:<10}" + "".join(
-                f"{100 * r['success'][k]:>6.0f} ({r['mean_error_m'][k]:4.2f})" for k in range(n)))
+                f"{100 * r['success'][k]:>5.0f}/{100 * r['success_pose'][k]:<3.0f}({r['mean_error_m'][k]:4.2f})"
+                for k in range(n)))
     for name, diag in result.get("diagnostics", {}).items():
         lines.append(f"\ndiagnostics ({name}): " + ", ".join(
             f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in diag.items()))
@@ -55,7 +57,9 @@ def _run(args: argparse.Namespace) -> int:
                         seed=args.seed, workers=args.workers, features=args.features, j=args.j,
                         step=args.step, heading_step_deg=args.heading_step, eval_particles=args.eval_particles,
                         predicted_neighbours=args.predicted, inject=args.inject,
-                        ideal=args.ideal)
+                        ideal=args.ideal,
+                        filter={"global_proposal_fraction": args.global_proposal},
+                        motion={"min_sigma_xy": args.floor_xy, "min_sigma_theta": math.radians(args.floor_theta)})
     bar = Progress("active")
     result, extras = run(setup, progress=lambda label, d, n: bar.update(d, n, label=label))
     bar.close()
@@ -85,6 +89,13 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inject", type=float, default=0.0,
                    help="investigation: after each update replace this fraction of the particles by draws "
                    "from the image's sensor model (default 0: the filter as the service runs it)")
+    p.add_argument("--global-proposal", type=float, default=0.5,
+                   help="FilterConfig.global_proposal_fraction: share of the particles drawn from the first "
+                   "image's sensor model (0: the plain APF from the uniform set)")
+    p.add_argument("--floor-xy", type=float, default=0.01,
+                   help="MotionModelConfig.min_sigma_xy: process-noise floor per update, metres")
+    p.add_argument("--floor-theta", type=float, default=0.5,
+                   help="MotionModelConfig.min_sigma_theta: process-noise floor per update, degrees")
     p.add_argument("--ideal", action="store_true",
                    help="also compute the sensor model's upper bound (dense-grid posterior, no particles)")
     p.add_argument("--step", type=float, default=0.75, help="map grid step, metres")

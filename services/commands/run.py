@@ -13,10 +13,10 @@ SIGTERM or SIGINT, which shut it down cleanly (threads stopped, pose saved, devi
 the child simulator stopped) with exit status 0.
 
 BLAS threads: the filter's products are small; threaded OpenBLAS/OpenMP made them ~10x slower
-on the 2-core robot computer. The thread counts are read when numpy loads, which has
-happened by the time a command runs, so ``run`` re-executes itself once (same PID, as
-systemd's ``Type=notify`` expects) with ``OPENBLAS_NUM_THREADS=OMP_NUM_THREADS=1`` when they
-are not set already.
+on the 2-core robot computer. ``services.cli`` sets ``OPENBLAS_NUM_THREADS`` /
+``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS`` to 1 before numpy loads (unless set); when
+``run_daemon`` is entered some other way after numpy was loaded without them, it sets them and
+re-executes itself once (same PID, as systemd's ``Type=notify`` expects).
 """
 
 from __future__ import annotations
@@ -42,10 +42,15 @@ SIM_TOML = Path(__file__).resolve().parents[2] / "config" / "sim.toml"
 
 
 def _single_threaded_blas() -> None:
-    """Re-exec once with one BLAS/OpenMP thread when numpy was loaded without it."""
-    if all(os.environ.get(v) == "1" for v in THREAD_VARS):
+    """One BLAS/OpenMP thread unless the environment chose otherwise.
+
+    ``services.cli`` already sets the variables before numpy loads; this covers other entry
+    points (``run_daemon`` called after numpy was imported without them): it sets them and
+    re-executes the process once (same PID)."""
+    missing = [v for v in THREAD_VARS if v not in os.environ]
+    if not missing:
         return
-    for v in THREAD_VARS:
+    for v in missing:
         os.environ[v] = "1"
     if os.environ.get(_REEXEC_MARK) or "numpy" not in sys.modules:
         return

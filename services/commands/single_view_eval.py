@@ -20,7 +20,8 @@ def _run(args: argparse.Namespace) -> int:
     else:
         print(f"{result['views']} off-grid views of the {result['world']} against {result['map_entries']} map entries "
               f"({result['features']} features, {result['preprocess']}):\n"
-              f"  nearest entry at the right place (section 6.1): {result['top1_success']:.1%}\n"
+              f"  nearest entry at the right place (section 6.1): {result['top1_success']:.1%}"
+              f" (same position and heading cell: {result['top1_success_pose']:.1%})\n"
               f"  right place among the J={result['J']} nearest:      {result['success_within_J']:.1%}\n"
               f"  a random entry at the right place (chance):     {result['chance_success']:.1%}")
     return 0
