@@ -22,8 +22,9 @@ Per condition two runs of the :class:`lino_loc.localizer.Localizer` on the same 
   ``converged_state_after_s``, when the filter itself first reported ``tracking``.
 
 ``without_recovery`` repeats both runs with the kidnap recovery switched off
-(``filter.max_inject_fraction = 0``): under changed light the sensor model is often wrong in a
-consistent way, and particles injected from it can capture the belief (see the docs).
+(``filter.max_inject_fraction = 0``), to show what recovery costs or buys: under changed light
+the sensor model is often wrong in a consistent way, which is why the filter only trusts
+familiar views for recovery while tracking (``lino_loc.particle_filter``, see the docs).
 
 ``odometry`` gives the same errors for dead reckoning alone (integrated odometry from the
 true start), to show what the camera adds.
