@@ -76,6 +76,8 @@ def driving(world):
         ticks_per_rev=2000,
         track_width=0.36,
         left_sign=-1,  # a non-default base
+        wheel_scale_std=0.0,  # exact encoders: this checks the adapter's integration, not slip
+        wheel_slip_k=0.0,
     )
     robot = SimRobot(cfg, world=world, on_truth=truths)
     robot.truths = truths  # type: ignore[attr-defined]

@@ -96,6 +96,12 @@ class SimRobotConfig(BaseModel):
     track_width: float = Field(0.30, gt=0.0)
     left_sign: int = 1
     right_sign: int = 1
+    wheel_scale_std: float = Field(
+        0.003, ge=0.0, description="std of each wheel's scale error (tyre wear, load), drawn per run"
+    )
+    wheel_slip_k: float = Field(
+        0.005, ge=0.0, description="random slip, m^(1/2): per tick std = k sqrt(|distance rolled|)"
+    )
     odometry_rate_hz: float = Field(50.0, gt=0.0)
     pan_id: int = Field(1, ge=0, le=252)
     tilt_id: int = Field(2, ge=0, le=252)
@@ -415,6 +421,16 @@ class SimRobot:
         k = 0
         t0 = m0
         half_b = 0.5 * c.track_width
+        # What the encoders see is not exactly what the base did: a scale error per wheel for
+        # the whole run and random slip per tick (seeded: the same run for the same seed).
+        odo_rng = np.random.default_rng((c.seed, 17))
+        bias_l, bias_r = odo_rng.normal(0.0, c.wheel_scale_std, 2) if c.wheel_scale_std else (0.0, 0.0)
+
+        def measured(speed: float, bias: float) -> float:
+            rolled = abs(speed) * dt
+            slip = c.wheel_slip_k * math.sqrt(rolled) * odo_rng.standard_normal() if c.wheel_slip_k and rolled else 0.0
+            return speed * (1.0 + bias) + slip / dt
+
         try:
             while not self._stop.is_set():
                 target = t0 + k * dt
@@ -442,7 +458,9 @@ class SimRobot:
                     with self._stats_lock:
                         self._blocked += 1
                 vl, vr = v - omega * half_b, v + omega * half_b
-                self.odometry.set_wheel_speeds(c.left_sign * vl, c.right_sign * vr)
+                self.odometry.set_wheel_speeds(
+                    c.left_sign * measured(vl, bias_l), c.right_sign * measured(vr, bias_r)
+                )
                 state = _BaseState(stamp, pose, v, omega)
                 with self._cond:
                     self._history.append(state)
