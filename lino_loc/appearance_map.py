@@ -214,6 +214,11 @@ def _disparity_project(ch: ChannelMap, disparity: np.ndarray) -> np.ndarray:
 
     frac = float(ch.params.get("min_valid_fraction", 0.25) or 0.0)
     z = downsample_sparse(disparity, ch.size, min_valid_fraction=frac).reshape(-1)
+    if not np.isfinite(z).any():
+        # No block with enough stereo matches: the channel observed nothing this frame. NaN
+        # features say so (the Localizer drops the channel) instead of the prior mean 0,
+        # which would look like a real observation.
+        return np.full(ch.features.shape[1], np.nan, dtype=np.float32)
     return np.asarray(ch.pca.project(z), dtype=np.float32)
 
 

@@ -66,8 +66,10 @@ STARTS: tuple[tuple[float, float, float], ...] = (
     (5.3, 0.35, -math.pi / 2),
     (5.3, 1.15, math.pi / 2),
     (7.1, 0.35, -math.pi / 2),
+    (0.35, 2.15, 0.0),
+    (5.75, 2.15, math.pi / 2),
 )
-WINDOW_S = 10.0  # seconds of poses per phase (head moving / head fixed)
+WINDOW_S = 8.0  # seconds of poses per phase (head moving / head fixed)
 CONVERGED_M = 0.5
 PAN_LIMIT = 1.6  # the configured active-vision range [-PAN_LIMIT, PAN_LIMIT] (head: +-2.6)
 PAN_TOLERANCE = 0.02  # rad: position reporting of the emulated servo (one tick is 0.0015 rad)

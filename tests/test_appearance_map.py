@@ -138,6 +138,8 @@ def test_disparity_channel_round_trip(dataset: Dataset, tmp_path: Path) -> None:
     query = 25.0 * 0.075 / dataset.depth(3)  # f B / Z with NaN where no depth
     np.testing.assert_allclose(back.channels["disparity"].project(query), disp.project(query), rtol=1e-6)
     np.testing.assert_allclose(disp.project(query), disp.features[3], rtol=1e-3, atol=1e-3)
+    # A map with no stereo match at all observes nothing: NaN features, not the prior mean.
+    assert np.all(np.isnan(disp.project(np.full_like(query, np.nan))))
 
 
 # ----------------------------------------------------------------- bad files
