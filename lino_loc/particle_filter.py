@@ -32,7 +32,7 @@ Kidnap recovery. Before the belief has converged (and with ``recovery="amcl"`` a
 rule: a fraction ``max(0, 1 - w_fast / w_slow)`` (capped by ``max_inject_fraction``) of the
 particles is replaced by samples drawn from the sensor model's pose mixture. While tracking,
 that rule fails with an appearance sensor model under changed light (measured in the lab,
-docs/evaluations_localization.md: 0.32 / 3.32 / 3.28 m mean error under tube / bulb / natural
+docs/evaluations.md: 0.32 / 3.32 / 3.28 m mean error under tube / bulb / natural
 light instead of 0.14 / 0.29 / 0.27 m without recovery): ``w_fast / w_slow`` fluctuates about 1,
 so injection fires in most updates, and the sensor model's wrong matches are wrong
 CONSISTENTLY over seconds (an aliased place explains the views better than the true one for

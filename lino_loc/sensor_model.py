@@ -305,7 +305,7 @@ class SensorModelConfig(BaseModel):
     sigma_theta: float = Field(0.3, gt=0.0, description="kernel width in theta, radians")
     lambda_scale: Literal["median", "nearest", "uniform"] = "median"
     lambda_scale_factor: float = Field(1.0, gt=0.0)
-    # 0.5 (was 0.01), measured (issue 3, docs/evaluations_localization.md): under light and
+    # 0.5 (was 0.01), measured (issue 3, docs/evaluations.md): under light and
     # scene changes the map does not know, most J-nearest sets are wrong (top-1 within 0.5 m for
     # 5-17 % of the frames under bulb / natural light in the lab). Tracking the 60 s lab drive
     # (histeq, kidnap recovery off), mean error tube / bulb / natural: outlier 0.01 -> 0.18 /

@@ -19,17 +19,20 @@ false`` in the file, services/daemon.py ``make_active_policy`` copies that flag 
 policy it creates at runtime, whose ``decide()`` then always answers "disabled" - the head
 never moves. A daemon bug, reported to the lead.)
 
-The start poses (three, compared by their median) were chosen with an offline scan of the
-office: from each of them one view keeps the filter in ``global`` (several places explain it)
-or sends it to a wrong place 3-7 m away: in front of the repeated desks, posters and ceiling
-tubes of the south and north walls. Turning the head shows walls at distinct distances.
+The five start poses were chosen with an offline scan of the office (Localizer fed six
+noisy views of one pose): from each of them one view keeps the filter in ``global`` (several
+places explain it) or sends it to a wrong place 3-7 m away - in front of the repeated desks,
+posters and ceiling tubes of the south and north walls, or along the room. Turning the head
+shows walls at distinct distances. Measured (several runs): with the head fixed the daemon
+settles on a wrong place at (nearly) every start; with the head moving it reaches < 0.5 m in
+1-3 s at 3-5 of the 5 starts (the others: the right place but 0.6-1 m off, or a wrong one).
 
-Asserted: with active vision the head turns by more than 0.3 rad (true pan) and never goes
-beyond the configured range (+-1.6 rad, narrower than the head's +-2.6 so that a policy
-ignoring it would show); with the head fixed the pan stays at 0; the median over the start
-poses of the time until the position error stays below 0.5 m (a run that never gets there
-counts as the window plus one second) is within the window with the head moving, and smaller
-than with the head fixed.
+Asserted: with active vision the head turns by more than 0.3 rad (true pan) at every start
+and never goes beyond the configured range (+-1.6 rad, narrower than the head's +-2.6 so that
+a policy ignoring it would show); with the head fixed the pan stays at 0; the belief
+converges (position error below 0.5 m from some time to the end of the window) at more start
+poses with the head moving than fixed, and the mean time to converge over the start poses (a
+run that never converges counts as the window plus one second) is smaller with it moving.
 """
 
 from __future__ import annotations
@@ -288,9 +291,9 @@ def run_all(tmp: Path, window: float = WINDOW_S) -> list[tuple[Trial, Trial]]:
         return [f.result() for f in futures]
 
 
-def _median_time(trials: list[Trial], window: float) -> float:
-    """Median time to converge; a run that never converged counts as ``window + 1``."""
-    return statistics.median(window + 1.0 if t.converge_s is None else t.converge_s for t in trials)
+def _mean_time(trials: list[Trial], window: float) -> float:
+    """Mean time to converge; a run that never converged counts as ``window + 1``."""
+    return statistics.fmean(window + 1.0 if t.converge_s is None else t.converge_s for t in trials)
 
 
 def test_time_to_converge_is_when_the_error_stays_below_the_threshold() -> None:
@@ -298,7 +301,9 @@ def test_time_to_converge_is_when_the_error_stays_below_the_threshold() -> None:
     assert time_to_converge(errs, 0.5) == 0.6
     assert time_to_converge(errs[:3], 0.5) is None  # ends above the threshold
     assert time_to_converge([], 0.5) is None
-    assert _median_time([Trial((0, 0, 0), True, None, [], [], [], [], "")] * 2, 10.0) == 11.0
+    never = Trial((0, 0, 0), True, None, [], [], [], [], "")
+    once = Trial((0, 0, 0), True, 2.0, [], [], [], [], "")
+    assert _mean_time([never, once], 10.0) == 6.5
 
 
 @pytest.mark.slow
@@ -329,11 +334,13 @@ def test_head_moves_and_belief_converges_faster_than_with_the_head_fixed(tmp_pat
         assert f.pans_true and max(abs(p) for p in f.pans_true + f.pans_reported) < 0.05, report
         assert "Traceback" not in a.log, a.log[-3000:]
 
-    t_fixed, t_active = _median_time(fixed, WINDOW_S), _median_time(active, WINDOW_S)
-    # the belief converges (error < 0.5 m for good) within the window with the head moving ...
-    assert t_active <= WINDOW_S, f"active vision did not converge: median {t_active:.1f} s\n{report}"
-    # ... and faster than with the head fixed (a still robot with a fixed camera sees one view)
-    assert t_active < t_fixed, f"median time to converge: active {t_active:.1f} s, fixed {t_fixed:.1f} s\n{report}"
+    # the belief converges (error < 0.5 m for good) at more start poses with the head moving ...
+    n_fixed = sum(t.converge_s is not None for t in fixed)
+    n_active = sum(t.converge_s is not None for t in active)
+    assert n_active > n_fixed, f"converged: active {n_active}, fixed {n_fixed} of {len(STARTS)}\n{report}"
+    # ... and sooner: mean time to converge over the start poses (never = window + 1 s)
+    t_fixed, t_active = _mean_time(fixed, WINDOW_S), _mean_time(active, WINDOW_S)
+    assert t_active < t_fixed, f"mean time to converge: active {t_active:.1f} s, fixed {t_fixed:.1f} s\n{report}"
 
 
 def main() -> None:  # pragma: no cover - manual experiments

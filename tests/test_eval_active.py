@@ -1,5 +1,5 @@
 """`lino-loc eval active` on a tiny office map (coarse grid, few positions): JSON contract,
-plots, argument errors. The full experiment's figures are in docs/evaluations_active.md."""
+plots, argument errors. The full experiment's figures are in docs/evaluations.md."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """`lino-loc eval sensor-model` (Fig. 5): eq. 10 on hand-made neighbour sets, the J split of the
 disjunctive model (eq. 8), the test path, and the JSON of a tiny run (coarse lab grid, small
-renders, few test poses). The full experiment's figures are in docs/evaluations_depth.md."""
+renders, few test poses). The full experiment's figures are in docs/evaluations.md."""
 
 from __future__ import annotations
 

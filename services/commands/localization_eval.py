@@ -8,7 +8,7 @@
   against its floor (:mod:`services.evaluation.leave_out`).
 
 Each prints a short table, or with ``--json`` exactly one JSON object (keys documented in
-docs/evaluations_localization.md).
+docs/evaluations.md).
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PREPROCESS = "none"  # measured: see docs/evaluations_localization.md
+DEFAULT_PREPROCESS = "none"  # measured: see docs/evaluations.md
 DEFAULT_CHANGES = ("boxes", "moved_furniture", "people")
 
 
