@@ -161,7 +161,9 @@ def make_active_policy(cfg: ServiceConfig, localizer: Localizer, head_limits: An
     except ImportError:  # pragma: no cover - the module exists in this tree
         log.warning("active vision: lino_loc.active_vision not available; head stays at pan 0")
         return None
-    av = AVConfig.model_validate(cfg.active_vision.model_dump())
+    # The daemon switches active vision on and off itself (``av_enabled``, the control
+    # socket's set_active_vision); the policy it calls must always decide.
+    av = AVConfig.model_validate({**cfg.active_vision.model_dump(), "enabled": True})
     model = localizer.models["intensity"]
     limits = None
     if head_limits is not None:
