@@ -57,7 +57,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -70,6 +69,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from lino_loc import __version__
+from lino_loc.atomic_file import atomic_write
 from lino_loc.dataset import CameraInfo, Dataset
 from lino_loc.errors import LinoLocError
 from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, fit_pca
@@ -339,19 +339,8 @@ class AppearanceMap:
         parent = path.parent if str(path.parent) else Path(".")
         if not parent.is_dir():
             raise LinoLocError(f"{path}: folder {parent} does not exist")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **{HEADER_KEY: hdr}, **arrays)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+        with atomic_write(path, "wb") as fh:
+            np.savez(fh, **{HEADER_KEY: hdr}, **arrays)
         self.path = path
         return path
 

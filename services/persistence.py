@@ -20,8 +20,6 @@ Usage::
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Literal
@@ -29,6 +27,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from lino_loc.atomic_file import atomic_write
 from services.messages import Covariance, Pose2D
 
 log = logging.getLogger("lino_loc.service.persistence")
@@ -79,39 +78,14 @@ class SavedState(BaseModel):
         return np.asarray(self.covariance, dtype=np.float64).reshape(3, 3)
 
 
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def save_state(path: str | Path, state: SavedState) -> Path:
     """Write ``state`` atomically (temp file + fsync + rename + fsync of the folder)."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     folder.mkdir(parents=True, exist_ok=True)
     data = state.model_dump_json(indent=1).encode("utf-8") + b"\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    _fsync_dir(folder)
+    with atomic_write(path, "wb", sync_folder=True) as fh:
+        fh.write(data)
     return path
 
 

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services import persistence
 from services.persistence import SavedState, load_state, save_state
 
 
@@ -66,7 +65,7 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path, monkeypatch: pytest.Mon
     def boom(fd: int) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(persistence.os, "fsync", boom)
+    monkeypatch.setattr(os, "fsync", boom)  # the atomic writer's fsync (lino_loc.atomic_file)
     with pytest.raises(OSError):
         save_state(p, _state(2.0))
     assert p.read_bytes() == before
