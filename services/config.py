@@ -45,6 +45,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from drivers.dynamixel_head import HeadConfig
 from drivers.oakd_config import OakdConfig
 from drivers.serial_odometry import OdometryConfig
+from lino_loc.active_vision import ActiveVisionConfig  # the [active_vision] section
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import LocalizerConfig
 from lino_loc.preprocessing import Preprocess
@@ -178,32 +179,6 @@ class MapConfig(_Section):
     @classmethod
     def _expand(cls, v: Path) -> Path:
         return v.expanduser()
-
-
-class ActiveVisionConfig(_Section):
-    """Choose the camera's pan angle that minimises the expected pose entropy H(u)."""
-
-    enabled: bool = True
-    n_actions: int = Field(22, ge=2, le=360, description="candidate pan angles (the paper: 22)")
-    pan_min: float = Field(-2.6, ge=-math.pi, le=math.pi, description="radians")
-    pan_max: float = Field(2.6, ge=-math.pi, le=math.pi, description="radians")
-    max_particles: int = Field(
-        150, ge=1, description="particles used to evaluate H(u) (the paper: up to 150)"
-    )
-    min_entropy_gain: float = Field(
-        0.05, ge=0.0, description="nats; move only if the best action lowers H by this much"
-    )
-    trigger_entropy: float | None = Field(
-        None, description="nats; act only while the pose entropy is above this (unset = always)"
-    )
-    min_interval_s: float = Field(1.0, ge=0.0, description="seconds between head movements")
-    settle_s: float = Field(0.2, ge=0.0, description="wait after the head stops before using frames")
-
-    @model_validator(mode="after")
-    def _range(self) -> ActiveVisionConfig:
-        if not self.pan_min < self.pan_max:
-            raise ValueError(f"pan_min ({self.pan_min}) must be < pan_max ({self.pan_max})")
-        return self
 
 
 # --------------------------------------------------------------------------------------------

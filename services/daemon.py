@@ -157,13 +157,12 @@ def make_active_policy(cfg: ServiceConfig, localizer: Localizer, head_limits: An
     the module is missing. This is the seam between the service and the method."""
     try:
         from lino_loc.active_vision import ActionEvaluator, ActivePolicy
-        from lino_loc.active_vision import ActiveVisionConfig as AVConfig
     except ImportError:  # pragma: no cover - the module exists in this tree
         log.warning("active vision: lino_loc.active_vision not available; head stays at pan 0")
         return None
     # The daemon switches active vision on and off itself (``av_enabled``, the control
     # socket's set_active_vision); the policy it calls must always decide.
-    av = AVConfig.model_validate({**cfg.active_vision.model_dump(), "enabled": True})
+    av = cfg.active_vision.model_copy(update={"enabled": True})
     model = localizer.models["intensity"]
     limits = None
     if head_limits is not None:
