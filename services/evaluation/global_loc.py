@@ -61,7 +61,8 @@ class GlobalSetup:
     workers: int | None = None
 
 
-def _config(setup: Any, base: LocalizerConfig | None) -> LocalizerConfig:
+def localizer_config(setup: Any, base: LocalizerConfig | None) -> LocalizerConfig:
+    """``base`` (or the defaults) with the setup's particle count and J where it sets them."""
     cfg = (base or LocalizerConfig()).model_copy(deep=True)
     if setup.particles is not None:
         cfg.filter.n_particles = int(setup.particles)
@@ -78,7 +79,7 @@ def run(
 ) -> dict[str, Any]:
     """Run the evaluation; ``appearance_map`` overrides the rendered survey map (tests)."""
     world = load_world(setup.world)
-    cfg = _config(setup, config)
+    cfg = localizer_config(setup, config)
     if appearance_map is None:
         appearance_map = build_sim_maps(
             setup.world, setup.step, setup.heading_step_deg, setup.features, (setup.preprocess,),

@@ -45,6 +45,7 @@ from drivers.sim.world import load_world
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
 from services.evaluation.drive import DriveConfig, DrivePlan, plan_drive
+from services.evaluation.global_loc import localizer_config
 from services.evaluation.trajectories import trajectory_names, write_tum
 from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
 
@@ -78,15 +79,6 @@ class TrackingSetup:
     size: tuple[int, int] = (80, 60)
     seed: int = 0
     workers: int | None = None
-
-
-def _config(setup: TrackingSetup, base: LocalizerConfig | None) -> LocalizerConfig:
-    cfg = (base or LocalizerConfig()).model_copy(deep=True)
-    if setup.particles is not None:
-        cfg.filter.n_particles = int(setup.particles)
-    if setup.j is not None:
-        cfg.sensor.j = int(setup.j)
-    return cfg
 
 
 def converged_after(stamps: np.ndarray, err: np.ndarray, below: float, hold_s: float) -> float | None:
@@ -156,7 +148,7 @@ def run(
     changes = world.check_changes(setup.scene_changes)
     for light in setup.lights:
         world.check_lighting(light)
-    cfg = _config(setup, config)
+    cfg = localizer_config(setup, config)
     if maps is None:
         maps = build_sim_maps(
             setup.world, setup.step, setup.heading_step_deg, setup.features, tuple(setup.preprocess),

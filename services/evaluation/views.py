@@ -16,11 +16,11 @@ preprocessing, eq. 1) kept as map files under ~/.cache/lino-loc/maps (``$LINO_LO
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -81,6 +81,39 @@ def _channels(spec: ViewSpec) -> list[str]:
     return list(spec.preprocess) + (["disparity"] if spec.disparity else [])
 
 
+def _run_chunks(
+    spec: ViewSpec,
+    poses: np.ndarray,
+    fn: Callable[[tuple[int, np.ndarray]], Any],
+    workers: int | None,
+    progress: Callable[[int, int], None] | None,
+    chunk: int,
+    count: Callable[[Any], int],
+) -> list[Any]:
+    """``fn`` over chunks of ``poses`` (start index, poses), in this process when one worker
+    is asked for or there is one chunk, else in a pool of renderers; results in order."""
+    workers = workers or os.cpu_count() or 1
+    jobs = [(i, poses[i : i + chunk]) for i in range(0, len(poses), chunk)]
+    parts: list[Any] = []
+    done = 0
+
+    def collect(results: Iterable[Any]) -> None:
+        nonlocal done
+        for part in results:
+            parts.append(part)
+            done += count(part)
+            if progress:
+                progress(done, len(poses))
+
+    if workers == 1 or len(jobs) <= 1:
+        _init(spec)
+        collect(map(fn, jobs))
+    else:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(spec,)) as pool:
+            collect(pool.map(fn, jobs))
+    return parts
+
+
 def render_vectors(
     spec: ViewSpec,
     poses: np.ndarray,
@@ -89,26 +122,8 @@ def render_vectors(
     chunk: int = 64,
 ) -> dict[str, np.ndarray]:
     """Vectors (N, w*h) per channel for robot poses (N, 3) with the camera's pan at 0."""
-    poses = np.asarray(poses, dtype=np.float64)
-    workers = workers or os.cpu_count() or 1
-    jobs = [(i, poses[i : i + chunk]) for i in range(0, len(poses), chunk)]
-    parts: list[dict[str, np.ndarray]] = []
-    done = 0
-    if workers == 1:
-        _init(spec)
-        results = map(_render_chunk, jobs)
-        for part in results:
-            parts.append(part)
-            done += len(next(iter(part.values())))
-            if progress:
-                progress(done, len(poses))
-    else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(spec,)) as pool:
-            for part in pool.map(_render_chunk, jobs):
-                parts.append(part)
-                done += len(next(iter(part.values())))
-                if progress:
-                    progress(done, len(poses))
+    parts = _run_chunks(spec, np.asarray(poses, dtype=np.float64), _render_chunk, workers, progress, chunk,
+                        count=lambda part: len(next(iter(part.values()))))
     return {name: np.concatenate([p[name] for p in parts]) for name in _channels(spec)}
 
 
@@ -136,26 +151,8 @@ def render_grey(
 ) -> np.ndarray:
     """The camera's grey images (N, height, width) uint8 at robot poses (N, 3), pan 0, under
     ``spec.lighting`` and ``spec.scene_changes``; noise seeded by (seed, view index)."""
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    workers = workers or os.cpu_count() or 1
-    jobs = [(i, poses[i : i + chunk]) for i in range(0, len(poses), chunk)]
-    parts: list[np.ndarray] = []
-    done = 0
-    if workers == 1 or len(jobs) <= 1:
-        _init(spec)
-        results = map(_render_grey_chunk, jobs)
-        for part in results:
-            parts.append(part)
-            done += len(part)
-            if progress:
-                progress(done, len(poses))
-    else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(spec,)) as pool:
-            for part in pool.map(_render_grey_chunk, jobs):
-                parts.append(part)
-                done += len(part)
-                if progress:
-                    progress(done, len(poses))
+    parts = _run_chunks(spec, np.asarray(poses, dtype=np.float64).reshape(-1, 3), _render_grey_chunk,
+                        workers, progress, chunk, count=len)
     if not parts:
         return np.zeros((0, spec.height, spec.width), dtype=np.uint8)
     return np.concatenate(parts)
