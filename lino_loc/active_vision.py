@@ -44,7 +44,7 @@ The policy (:class:`ActivePolicy`) decides WHEN to look (belief not converged: t
 state is ``global`` or ``lost``, or the belief entropy is above ``trigger_entropy``, or the last
 observation fits the map badly: predictive log-likelihood below ``min_log_likelihood``),
 WHEN to stop (converged, or no action lowers the expected entropy by ``min_entropy_gain``),
-waits for the head to settle and for a frame taken after it settled, and never commands a
+turns the head back to ``home_pan`` (ahead) once converged, waits for the head to settle and for a frame taken after it settled, and never commands a
 pan outside the intersection of its own range and the head's limits. It is pure logic: the
 caller (the daemon) passes the head's present pan, its moving flag and the time.
 
@@ -114,6 +114,11 @@ class ActiveVisionConfig(BaseModel):
     )
     pan_tolerance: float = Field(
         0.02, ge=0.0, description="radians; a best action this close to the present pan = stay"
+    )
+    home_pan: float | None = Field(
+        0.0,
+        description="radians; once localized the head returns here (0: looking ahead, where a "
+        "driving robot wants its camera); unset: it stays where the last look left it",
     )
     predicted_neighbours: Literal["all", "leave_one_out"] = Field(
         "all",
@@ -301,6 +306,9 @@ class ActionEvaluator:
             self._sq_map = np.einsum("ij,ij->i", self._emb_map32, self._emb_map32)
             self._tree = cKDTree(self.embed(self.map_poses))
         self._column = column
+        if grid is not None:
+            self._cos_h = np.cos(self._headings).astype(np.float32)
+            self._sin_h = np.sin(self._headings).astype(np.float32)
         self._entry_of_column = np.empty(n_map, dtype=np.int64)
         self._entry_of_column[column] = np.arange(n_map)
         # Per map entry (indexed by column): its neighbours' columns and (1 - outlier) lambdas.
@@ -308,6 +316,9 @@ class ActionEvaluator:
         self._nn_lam = (np.exp(self.nn_log_lambda) * (1.0 - self.outlier_weight)).astype(np.float32)[
             self._entry_of_column
         ]
+        if grid is not None:  # position and heading index of each neighbour column
+            self._nn_pcol = (self._nn_cols // self._headings.size).astype(np.intp)
+            self._nn_hcol = (self._nn_cols % self._headings.size).astype(np.intp)
 
     def _product_grid(self) -> tuple[FloatArray, FloatArray, IntArray] | None:
         """(positions (P, 2), headings (H,), column of each entry) if the map is a product grid."""
@@ -315,7 +326,7 @@ class ActionEvaluator:
         pos, pinv = np.unique(np.round(p[:, :2], 6), axis=0, return_inverse=True)
         hd, hinv = np.unique(np.round(wrap_angle(p[:, 2]), 6), return_inverse=True)
         n_p, n_h = pos.shape[0], hd.shape[0]
-        if n_p * n_h != p.shape[0] or n_h > 64:
+        if n_p * n_h != p.shape[0]:
             return None
         column = pinv.reshape(-1) * n_h + hinv.reshape(-1)
         if np.unique(column).size != p.shape[0]:
@@ -378,6 +389,8 @@ class ActionEvaluator:
         predicted observation of particle i (float32, without the kernel normalizer), and the
         predicted map entries (A, M)."""
         a_n, m = u.size, p.shape[0]
+        if self.grid and self._headings.size * self._positions.shape[0] > 2 * self._nn_cols.shape[1] * m:
+            return self._mixture_sums_gather(p, u)
         kern, pred_col = self._kernels(p, u)
         n_map = kern.shape[1]
         j = self._nn_cols.shape[1]
@@ -388,6 +401,35 @@ class ActionEvaluator:
         )
         s = lam @ kern.reshape(a_n * n_map, m)
         return np.asarray(s).reshape(a_n, m, m), self._entry_of_column[pred_col]
+
+    def _mixture_sums_gather(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, IntArray]:
+        """:meth:`_mixture_sums` on a product grid without the (A, P, H, M) kernel table: the
+        kernel factorizes, phi(c | m_(p,h)) ~ g[p, k] v[a, h, k] (position x heading), so
+        only the J neighbours of each predicted observation are gathered, A M J M products
+        whatever the map size. Used when the table would be larger (many headings: maps with
+        virtual headings, :mod:`lino_loc.virtual_views`)."""
+        a_n, m = u.size, p.shape[0]
+        pos, hd = self._positions, self._headings
+        n_h = hd.size
+        dx = pos[:, 0:1] - p[None, :, 0]
+        dy = pos[:, 1:2] - p[None, :, 1]
+        lg = -(dx * dx + dy * dy) / (2.0 * self.sigma_xy**2)  # (P, M)
+        near_p = np.argmax(lg, axis=0)
+        g = np.exp(lg.astype(np.float32))
+        cam = p[None, :, 2] + u[:, None]  # (A, M)
+        # cos(cam - h) = cos cam cos h + sin cam sin h, in float32 (A, H, M)
+        ang = np.cos(cam).astype(np.float32)[:, None, :] * self._cos_h[None, :, None]
+        ang += np.sin(cam).astype(np.float32)[:, None, :] * self._sin_h[None, :, None]
+        near_h = np.argmax(ang, axis=1)
+        ang -= np.float32(1.0)
+        ang *= np.float32(self.kappa)
+        v = np.exp(ang, out=ang).reshape(a_n * n_h, m)
+        pred_col = near_p[None, :] * n_h + near_h  # (A, M)
+        lam = self._nn_lam[pred_col]  # (A, M, J)
+        kern = g[self._nn_pcol[pred_col]]  # (A, M, J, M): position factor of each neighbour
+        kern *= v[self._nn_hcol[pred_col] + (np.arange(a_n) * n_h)[:, None, None]]  # heading factor
+        s = np.einsum("amj,amjk->amk", lam, kern)
+        return s, self._entry_of_column[pred_col]
 
     def likelihoods(self, particles: ArrayLike, actions: ArrayLike) -> tuple[FloatArray, IntArray]:
         """log p(y_i(u) | camera_pose(x_k, u)) as (A, M_i, M_k), and the predicted map entries (A, M).
@@ -450,6 +492,7 @@ Reason = Literal[
     "no gain",
     "stay",
     "move",
+    "home",
 ]
 
 
@@ -557,6 +600,11 @@ class ActivePolicy:
         lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
         h_b = belief_entropy(p, lw, c.entropy_cell_xy, c.entropy_cell_theta)
         if not self.needs_look(state, h_b, log_likelihood):
+            home = None if c.home_pan is None else self.clamp(c.home_pan)
+            if home is not None and math.isfinite(pan) and abs(float(pan) - home) > c.pan_tolerance:
+                self.last_command_time = now
+                self.last_command = home
+                return Decision(home, "home", h_b)
             return Decision(None, "converged", h_b)
         values = self.evaluator.evaluate(p, lw, self.candidates(), rng)
         here = float(pan) if math.isfinite(pan) else None

@@ -74,6 +74,13 @@ from lino_loc.dataset import CameraInfo, Dataset
 from lino_loc.errors import LinoLocError
 from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, fit_pca
 from lino_loc.preprocessing import PREPROCESS_METHODS, Preprocess, preprocess, to_vector
+from lino_loc.virtual_views import (
+    augment_poses,
+    augment_vectors,
+    crop_columns,
+    margin_columns,
+    scaled_intrinsics,
+)
 
 log = logging.getLogger(__name__)
 
@@ -187,9 +194,21 @@ def get_channel_kind(name: str) -> ChannelKind:
 
 
 # ---- intensity
+def channel_margin(ch: ChannelMap | ChannelHeader) -> int:
+    """Columns cropped on each side of the working image before projection (virtual headings,
+    :mod:`lino_loc.virtual_views`; 0 for a map without them)."""
+    return int(ch.params.get("margin", 0) or 0)
+
+
+def channel_dim(ch: ChannelMap | ChannelHeader) -> int:
+    """Length of the vector the channel's PCA projects: (w - 2 margin) * h."""
+    w, h = ch.size
+    return (int(w) - 2 * channel_margin(ch)) * int(h)
+
+
 def _intensity_project(ch: ChannelMap, image: np.ndarray) -> np.ndarray:
     z = to_vector(preprocess(image, ch.preprocess), ch.size)  # type: ignore[arg-type]
-    return ch.pca.project(z)
+    return ch.pca.project(crop_columns(z, ch.size, channel_margin(ch)))
 
 
 def _pca_to_arrays(ch: ChannelMap) -> tuple[dict[str, np.ndarray], dict[str, ParamValue]]:
@@ -213,7 +232,8 @@ def _disparity_project(ch: ChannelMap, disparity: np.ndarray) -> np.ndarray:
     from lino_loc.disparity import downsample_sparse
 
     frac = float(ch.params.get("min_valid_fraction", 0.25) or 0.0)
-    z = downsample_sparse(disparity, ch.size, min_valid_fraction=frac).reshape(-1)
+    z = crop_columns(downsample_sparse(disparity, ch.size, min_valid_fraction=frac).reshape(-1), ch.size,
+                     channel_margin(ch))
     if not np.isfinite(z).any():
         # No block with enough stereo matches: the channel observed nothing this frame. NaN
         # features say so (the Localizer drops the channel) instead of the prior mean 0,
@@ -427,12 +447,12 @@ class AppearanceMap:
                 if k not in own:
                     raise bad(f"channel {name!r}: missing array {k!r}")
             w, h = ch.size
-            d, D = ch.n_features, w * h
+            d, D = ch.n_features, channel_dim(ch)
             feats, mean, comps = own["features"], own["mean"], own["components"]
             if feats.shape != (n, d) or mean.shape != (D,) or comps.shape != (d, D):
                 raise bad(
                     f"channel {name!r}: shapes features {feats.shape}, mean {mean.shape}, "
-                    f"components {comps.shape} do not match {n} images, {d} features, {w}x{h} pixels"
+                    f"components {comps.shape} do not match {n} images, {d} features, {D} pixels"
                 )
             try:
                 model = kind.from_arrays(own, ch.params)
@@ -562,6 +582,55 @@ def _project_rows(pca: PCA, X: np.ndarray, block: int = 1024) -> tuple[np.ndarra
 project_rows = _project_rows  # public name (services.evaluation.views uses the private one)
 
 
+def virtual_setup(
+    camera: CameraInfo, size: tuple[int, int], offsets: Sequence[float] | None
+) -> tuple[np.ndarray, list[float], int] | None:
+    """(K at the working size, heading offsets in radians, cropped margin) for a map with
+    virtual headings (:mod:`lino_loc.virtual_views`), or None for the plain map."""
+    if offsets is None or len(offsets) == 0 or (len(offsets) == 1 and float(offsets[0]) == 0.0):
+        return None
+    K = scaled_intrinsics(camera.fx, camera.fy, camera.cx, camera.cy, (camera.width, camera.height), size)
+    d = [float(x) for x in offsets]
+    return K, d, margin_columns(K, int(size[0]), max(abs(x) for x in d))
+
+
+def _virtual_params(virtual: tuple[np.ndarray, list[float], int] | None) -> dict[str, ParamValue]:
+    if virtual is None:
+        return {}
+    _, d, margin = virtual
+    return {"margin": margin, "virtual_offsets_deg": ",".join(f"{np.degrees(x):.6g}" for x in d)}
+
+
+def intensity_channel_from_vectors(
+    X: np.ndarray,
+    preprocess: Preprocess,
+    size: tuple[int, int],
+    n_features: int,
+    *,
+    virtual: tuple[np.ndarray, list[float], int] | None = None,
+    method: PcaMethod = "randomized",
+    seed: int = 0,
+) -> ChannelMap:
+    """The intensity channel from working-size vectors ``X`` (N, w*h): with ``virtual`` (see
+    :func:`virtual_setup`) each image first becomes its V turned, cropped views (rows
+    image-major, poses by :func:`lino_loc.virtual_views.augment_poses`); then PCA (eq. 1) and
+    the features of every row."""
+    if virtual is not None:
+        K, d, margin = virtual
+        X = augment_vectors(X, size, K, d, margin)
+    pca = fit_pca(X, n_features, method=method, seed=seed)
+    Y, total = _project_rows(pca, X)
+    return ChannelMap(
+        name="intensity",
+        preprocess=preprocess,
+        size=(int(size[0]), int(size[1])),
+        pca=pca,
+        features=Y,
+        method=method,
+        params={"total_variance": total, "seed": seed, **_virtual_params(virtual)},
+    )
+
+
 def build_intensity_channel(
     dataset: Dataset,
     n_features: int = DEFAULT_FEATURES,
@@ -572,20 +641,12 @@ def build_intensity_channel(
     method: PcaMethod = "randomized",
     seed: int = 0,
     workers: int | None = None,
+    virtual: tuple[np.ndarray, list[float], int] | None = None,
 ) -> ChannelMap:
-    """The intensity channel: preprocess, area-average, PCA (eq. 1), features of every image."""
+    """The intensity channel: preprocess, area-average, PCA (eq. 1), features of every image
+    (of every virtual view with ``virtual``)."""
     X = load_vectors(dataset, preprocess, size, workers=workers, progress=progress)
-    pca = fit_pca(X, n_features, method=method, seed=seed)
-    Y, total = _project_rows(pca, X)
-    return ChannelMap(
-        name="intensity",
-        preprocess=preprocess,
-        size=(int(size[0]), int(size[1])),
-        pca=pca,
-        features=Y,
-        method=method,
-        params={"total_variance": total, "seed": seed},
-    )
+    return intensity_channel_from_vectors(X, preprocess, size, n_features, virtual=virtual, method=method, seed=seed)
 
 
 def build_disparity_channel(
@@ -597,6 +658,7 @@ def build_disparity_channel(
     min_valid_fraction: float = 0.25,
     seed: int = 0,
     max_iter: int = 100,
+    virtual: tuple[np.ndarray, list[float], int] | None = None,
 ) -> ChannelMap:
     """The disparity channel (section 5): sparse disparity per image (from ``disparity``, or
     from ``depth`` by f*B/Z, or inverse depth without a baseline), NaN-aware area-average,
@@ -628,6 +690,9 @@ def build_disparity_channel(
             X[i] = downsample_sparse(disp, (w, h), min_valid_fraction=min_valid_fraction).reshape(-1)
         if progress and ((i + 1) % 64 == 0 or i + 1 == n):
             progress(i + 1, n)
+    if virtual is not None:
+        K, d, margin = virtual
+        X = augment_vectors(X, (w, h), K, d, margin, disparity=True)
     model = fit_pca_missing(X, n_features, seed=seed, max_iter=max_iter, dtype=np.float32)
     Y = np.asarray(model.project(X), dtype=np.float32)
     return ChannelMap(
@@ -642,6 +707,7 @@ def build_disparity_channel(
             "units": units,
             "seed": seed,
             "valid_fraction": float(np.isfinite(X).mean()),
+            **_virtual_params(virtual),
         },
     )
 
@@ -658,8 +724,13 @@ def build_map(
     channels: Sequence[str] = ("intensity",),
     seed: int = 0,
     workers: int | None = None,
+    virtual_offsets: Sequence[float] | None = None,
 ) -> AppearanceMap:
     """Build an appearance map from a dataset (eq. 1 for every image).
+
+    ``virtual_offsets`` (radians, e.g. ``lino_loc.virtual_views.offsets(radians(3), 5)``):
+    every image also gives the views turned by these heading offsets
+    (:mod:`lino_loc.virtual_views`); the map then has one entry per (image, offset).
 
     ``condition`` keeps only the rows recorded under that condition (e.g. ``tube``, the
     mapping light). ``channels``: ``("intensity",)`` or ``("intensity", "disparity")``.
@@ -673,6 +744,7 @@ def build_map(
     cam = dataset.meta.camera
     if not (0 < w <= cam.width and 0 < h <= cam.height):
         raise LinoLocError(f"map size {w}x{h} must be positive and at most the camera's {cam.width}x{cam.height}")
+    virtual = virtual_setup(cam, (w, h), virtual_offsets)  # checked before any image is read
     ds = dataset
     if condition is not None:
         ds = dataset.where(condition)
@@ -689,13 +761,13 @@ def build_map(
         raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
     chans: dict[str, ChannelMap] = {
         "intensity": build_intensity_channel(
-            ds, n_features, preprocess, (w, h), progress, method=method, seed=seed, workers=workers
+            ds, n_features, preprocess, (w, h), progress, method=method, seed=seed, workers=workers, virtual=virtual
         )
     }
     if "disparity" in channels:
-        chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed)
+        chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed, virtual=virtual)
     return AppearanceMap(
-        poses=ds.poses.copy(),
+        poses=ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual[1]),
         channels=chans,
         camera=ds.meta.camera,
         source=ds.meta.source or str(ds.root),

@@ -167,6 +167,11 @@ class MapBuildConfig(_Section):
     features: int = Field(5, ge=1, le=200, description="PCA features per image (eq. 1)")
     preprocess: Preprocess = "none"
     disparity: bool = Field(False, description="also build the disparity channel (EM-PCA)")
+    virtual_headings: int = Field(
+        1, ge=1, le=31, description="map entries per image: the image turned by this many headings "
+        "virtual_step_deg apart (lino_loc.virtual_views); 1 = the images alone"
+    )
+    virtual_step_deg: float = Field(3.0, gt=0.0, le=30.0, description="degrees between virtual headings")
 
 
 class MapConfig(_Section):
@@ -322,7 +327,7 @@ SIM_OVERRIDES: dict[str, Any] = {
     "map": {
         "path": "~/.cache/lino-loc/maps/office-tube-75cm-15deg-5f.npz",
         "build": {"world": "office", "lighting": "tube", "step": 0.75, "heading_step_deg": 15.0,
-                  "features": 5, "preprocess": "none"},
+                  "features": 5, "preprocess": "none", "virtual_headings": 5},
     },
     "localizer": {"filter": {"n_particles": 1000}},
     "persistence": {"state_file": "~/.local/state/lino-loc/sim-state.json"},

@@ -341,6 +341,7 @@ def ensure_sim_map(
     from drivers.sim.survey import run_survey
     from drivers.sim.world import load_world
     from lino_loc.dataset import Dataset
+    from lino_loc.virtual_views import offsets
 
     map_path = Path(cfg.map.path)
     build = cfg.map.build
@@ -376,6 +377,8 @@ def ensure_sim_map(
             amap = build_map(
                 Dataset.open(survey_dir), n_features=build.features, preprocess=build.preprocess,
                 size=size, channels=channels, seed=seed,
+                virtual_offsets=None if build.virtual_headings == 1 else offsets(
+                    math.radians(build.virtual_step_deg), build.virtual_headings),
             )
             amap.save(map_path)
             side = sidecar_path(map_path)

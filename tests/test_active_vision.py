@@ -21,10 +21,10 @@ from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 HEADINGS = wrap_angle(np.radians(np.arange(24) * 15.0))
 
 
-def grid_map(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def grid_map(seed: int = 0, headings: np.ndarray = HEADINGS) -> tuple[np.ndarray, np.ndarray]:
     """An office-like product grid (6 x 3 positions x 24 headings) with smooth features."""
     rng = np.random.default_rng(seed)
-    gx, gy, gh = np.meshgrid(np.arange(6) * 0.75, np.arange(3) * 0.75, HEADINGS, indexing="ij")
+    gx, gy, gh = np.meshgrid(np.arange(6) * 0.75, np.arange(3) * 0.75, headings, indexing="ij")
     poses = np.column_stack([gx.ravel(), gy.ravel(), gh.ravel()])
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     feats = np.column_stack([3 * c + 0.4 * poses[:, 0], 3 * s + 0.4 * poses[:, 1], np.sin(2 * poses[:, 0]) * c,
@@ -42,8 +42,18 @@ def model() -> NearestNeighbourSensorModel:
     return NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10, outlier_weight=0.01))
 
 
-@pytest.mark.parametrize("use_grid", [True, False])
-def test_likelihoods_match_the_filter_sensor_model(model: NearestNeighbourSensorModel, use_grid: bool) -> None:
+@pytest.fixture(scope="module")
+def dense_heading_model() -> NearestNeighbourSensorModel:
+    """Headings every 3 deg, as a map with virtual headings: the gathered-kernel path."""
+    poses, feats = grid_map(headings=wrap_angle(np.radians(np.arange(120) * 3.0)))
+    return NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10, outlier_weight=0.01))
+
+
+@pytest.mark.parametrize(("use_grid", "dense"), [(True, False), (False, False), (True, True)])
+def test_likelihoods_match_the_filter_sensor_model(model: NearestNeighbourSensorModel,
+                                                   dense_heading_model: NearestNeighbourSensorModel,
+                                                   use_grid: bool, dense: bool) -> None:
+    model = dense_heading_model if dense else model
     ev = ActionEvaluator(model, ActiveVisionConfig(n_actions=5), use_grid=use_grid)
     assert ev.grid is use_grid
     rng = np.random.default_rng(1)
@@ -172,7 +182,7 @@ def test_policy_rejects_a_range_outside_the_head_limits(model: NearestNeighbourS
         ActivePolicy(ActionEvaluator(model, cfg), head_limits=(-1.0, 0.2))
 
 
-def make_policy(model: NearestNeighbourSensorModel, **kw: float) -> ActivePolicy:
+def make_policy(model: NearestNeighbourSensorModel, **kw: float | None) -> ActivePolicy:
     cfg = ActiveVisionConfig(n_actions=8, settle_s=0.5, min_interval_s=2.0, **kw)
     return ActivePolicy(ActionEvaluator(model, cfg), head_limits=(-2.6, 2.6))
 
@@ -208,6 +218,16 @@ def test_policy_stop_rules(model: NearestNeighbourSensorModel) -> None:
     d = make_policy(model).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=0.0, moving=False, now=5.0)
     assert d.reason == "converged" and d.command is None and d.values is None
     assert d.belief_entropy < 0.1
+    # converged with the head turned aside: back to looking ahead (home_pan), once
+    d = make_policy(model).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=1.2, moving=False, now=5.0)
+    assert d.reason == "home" and d.command == pytest.approx(0.0)
+    d = make_policy(model, home_pan=None).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=1.2,
+                                                 moving=False, now=5.0)
+    assert d.reason == "converged" and d.command is None
+    # a home outside the head's limits is clamped to them
+    d = make_policy(model, home_pan=3.0).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=0.0,
+                                                moving=False, now=5.0)
+    assert d.reason == "home" and d.command is not None and d.command <= 2.6 + 1e-12
     # tracking but the image fits the map badly: look again
     pol = make_policy(model, min_log_likelihood=-8.0)
     d = pol.decide(conv, lw, state="tracking", log_likelihood=-20.0, pan=0.0, moving=False, now=5.0)

@@ -61,6 +61,24 @@ def test_build_and_info(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFix
     assert code == 0 and "intensity: 5 features, preprocess gradient, 12x9" in out
 
 
+def test_build_with_virtual_headings(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out_map = tmp_path / "v.npz"
+    code, out, err = _run(capsys, "map", "build", str(dataset), "--out", str(out_map), "--features", "4",
+                          "--size", "24x18", "--virtual-headings", "3", "--virtual-step", "4", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["images"] == 12 and summary["entries"] == 36
+    code, out, _ = _run(capsys, "map", "info", str(out_map))
+    assert code == 0 and "every image also turned by -4,0,4 deg" in out
+    # a turn that leaves the field of view is refused in one line
+    code, _, err = _run(capsys, "map", "build", str(dataset), "--out", str(tmp_path / "w.npz"),
+                        "--size", "24x18", "--virtual-headings", "3", "--virtual-step", "40")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "virtual headings" in err
+    code, _, err = _run(capsys, "map", "build", str(dataset), "--out", str(tmp_path / "w.npz"),
+                        "--virtual-headings", "0")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+
+
 def test_bad_map_files_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "notes.txt").write_text("not a map")
     for path in (tmp_path / "notes.txt", tmp_path / "missing.npz"):

@@ -44,6 +44,13 @@ def test_json_has_the_contract_keys(tiny_run: tuple[dict, object]) -> None:
             assert all(p >= q for p, q in zip(r["success"], r["success_pose"], strict=True))
             assert all(v >= 0.0 for v in r["mean_error_m"] + r["std_error_m"])
     assert res["scene_changes"]["names"] == ["boxes"]
+    # the default map: every image also turned by -6, -3, +3, +6 deg (lino_loc.virtual_views)
+    assert res["map_entries"] == 5 * res["map_images"]
+    for bands in (res["success_by_grid_distance"], res["scene_changes"]["success_by_grid_distance"]):
+        assert sum(b["positions"] for b in bands.values()) == res["positions"]
+        for b in bands.values():
+            for s in ("entropy", "random", "sweep"):
+                assert s not in b or len(b[s]) == 3
     for diag in res["diagnostics"].values():
         assert all(0.0 <= v <= 1.0 for v in diag.values() if isinstance(v, float))
         assert "truth_cell_among_j_nearest" in diag and "initial_particle_in_truth_cell" in diag
@@ -73,7 +80,14 @@ def test_test_positions_are_free_and_off_the_grid() -> None:
     assert (d >= setup.min_grid_distance).all()
 
 
-@pytest.mark.parametrize("bad", [["--positions", "0"], ["--scene-changes", "no_such_change"]])
+def test_plain_map_has_one_entry_per_image(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "active", "--json", *TINY, "--virtual-headings", "1", "--movements", "1"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["map_entries"] == res["map_images"]
+
+
+@pytest.mark.parametrize("bad", [["--positions", "0"], ["--scene-changes", "no_such_change"],
+                                 ["--virtual-headings", "0"]])
 def test_bad_arguments_exit_2(bad: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "active", *TINY, *bad]) == 2
     err = capsys.readouterr().err

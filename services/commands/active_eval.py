@@ -17,14 +17,15 @@ log = logging.getLogger(__name__)
 def _table(result: dict) -> str:
     lines = [
         f"Active localization in the simulated {result['setup']['world']}: {result['positions']} positions x "
-        f"{result['runs']} runs, {result['map_entries']} map images, {result['setup']['particles']} particles, "
+        f"{result['runs']} runs, {result['map_images']} map images ({result['map_entries']} map entries with "
+        f"virtual headings), {result['setup']['particles']} particles, "
         f"{result['setup']['n_actions']} pans"
     ]
-    blocks = [("as mapped", result["strategies"])]
+    blocks = [("as mapped", result["strategies"], result["success_by_grid_distance"])]
     if "scene_changes" in result:
         blocks.append(("scene changes " + "+".join(result["scene_changes"]["names"]),
-                       result["scene_changes"]["strategies"]))
-    for title, strategies in blocks:
+                       result["scene_changes"]["strategies"], result["scene_changes"]["success_by_grid_distance"]))
+    for title, strategies, bands in blocks:
         n = len(next(iter(strategies.values()))["success"])
         lines.append(f"\n{title}: success % position / pose cell (mean error m) after k movements")
         lines.append(f"{'k':<10}" + "".join(f"{k:>14}" for k in range(n)))
@@ -32,6 +33,10 @@ def _table(result: dict) -> str:
             lines.append(f"{s:<10}" + "".join(
                 f"{100 * r['success'][k]:>5.0f}/{100 * r['success_pose'][k]:<3.0f}({r['mean_error_m'][k]:4.2f})"
                 for k in range(n)))
+        for band, b in bands.items():
+            lines.append(f"  test positions {band} m from a map position ({b['positions']}): success % " + ", ".join(
+                f"{s} " + "/".join(f"{100 * v:.0f}" for v in b[s][:4]) for s in strategies if s in b)
+                + " after 0/1/2/3 movements")
     for name, diag in result.get("diagnostics", {}).items():
         lines.append(f"\ndiagnostics ({name}): " + ", ".join(
             f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in diag.items()))
@@ -49,7 +54,8 @@ def _run(args: argparse.Namespace) -> int:
 
             changes = load_world(args.world).scene_change_names
     for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
-                        ("--particles", args.particles), ("--actions", args.actions), ("--eval-particles", args.eval_particles)):
+                        ("--particles", args.particles), ("--actions", args.actions), ("--eval-particles", args.eval_particles),
+                        ("--virtual-headings", args.virtual_headings)):
         if value < 1:
             raise LinoLocError(f"{name} must be at least 1 (got {value})")
     setup = ActiveSetup(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
@@ -57,7 +63,8 @@ def _run(args: argparse.Namespace) -> int:
                         seed=args.seed, workers=args.workers, features=args.features, j=args.j,
                         step=args.step, heading_step_deg=args.heading_step, eval_particles=args.eval_particles,
                         predicted_neighbours=args.predicted, inject=args.inject,
-                        ideal=args.ideal,
+                        ideal=args.ideal, virtual_headings=args.virtual_headings,
+                        virtual_step_deg=args.virtual_step,
                         filter={"global_proposal_fraction": args.global_proposal},
                         motion={"min_sigma_xy": args.floor_xy, "min_sigma_theta": math.radians(args.floor_theta)})
     bar = Progress("active")
@@ -101,6 +108,10 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--step", type=float, default=0.75, help="map grid step, metres")
     p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees")
     p.add_argument("--actions", type=int, default=22, help="candidate pan angles")
+    p.add_argument("--virtual-headings", type=int, default=5,
+                   help="views per map image, turned by multiples of --virtual-step (lino_loc.virtual_views); "
+                   "1 = the paper's plain map (default 5)")
+    p.add_argument("--virtual-step", type=float, default=3.0, help="degrees between virtual headings (default 3)")
     p.add_argument("--features", type=int, default=5)
     p.add_argument("--j", type=int, default=10, help="nearest neighbours of the sensor model")
     p.add_argument("--scene-changes", default="",

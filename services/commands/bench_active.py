@@ -30,8 +30,10 @@ ACTIONS = (11, 22, 44)
 TARGET_MS = 20.0
 
 
-def office_like_map(seed: int = 0) -> tuple[Any, Any]:
-    """(poses (1056, 3), features (1056, 5)): the office grid with smooth synthetic features."""
+def office_like_map(seed: int = 0, heading_step_deg: float = 15.0) -> tuple[Any, Any]:
+    """(poses (N, 3), features (N, 5)): the office grid (11 x 4 positions, headings every
+    ``heading_step_deg``: 1056 entries at 15 deg, 5280 at 3 deg as with virtual headings) with
+    smooth synthetic features."""
     import numpy as np
 
     from lino_loc.poses import wrap_angle
@@ -39,7 +41,7 @@ def office_like_map(seed: int = 0) -> tuple[Any, Any]:
     rng = np.random.default_rng(seed)
     xs = np.arange(11) * 0.75
     ys = np.arange(4) * 0.75
-    hs = wrap_angle(np.radians(np.arange(24) * 15.0))
+    hs = wrap_angle(np.radians(np.arange(int(round(360.0 / heading_step_deg))) * heading_step_deg))
     gx, gy, gh = np.meshgrid(xs, ys, hs, indexing="ij")
     poses = np.column_stack([gx.ravel(), gy.ravel(), gh.ravel()])
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
@@ -96,6 +98,12 @@ def run_active_bench(repeats: int = 30, particles: tuple[int, ...] = PARTICLES,
     generic = ActionEvaluator(model, ActiveVisionConfig(), use_grid=False)
     p, lw = belief(150)
     out["generic_path_150x22"] = _time(lambda: generic.evaluate(p, lw), max(5, repeats // 3))
+    # the map with virtual headings (lino_loc.virtual_views): 5 per image, every 3 deg
+    vposes, vfeats = office_like_map(heading_step_deg=3.0)
+    vmodel = NearestNeighbourSensorModel(vposes, vfeats, SensorModelConfig(j=10))
+    vev = ActionEvaluator(vmodel, ActiveVisionConfig(n_actions=22, max_particles=150))
+    out["virtual_headings_150x22"] = {"map_entries": int(len(vposes)),
+                                      **_time(lambda: vev.evaluate(p, lw), repeats)}
     ref = out["particles"].get("150") or out["actions"].get("22")
     out["target"] = {"particles": 150, "actions": 22, "ms_max": TARGET_MS,
                      "met_wall": bool(ref and ref["median_ms"] <= TARGET_MS),
@@ -115,6 +123,9 @@ def _table(res: dict[str, Any]) -> str:
         lines.append(f"{'150 particles, ' + a + ' actions':<24}{r['median_ms']:>12.2f}{r['cpu_median_ms']:>10.2f}")
     g = res["generic_path_150x22"]
     lines.append(f"{'generic path 150 x 22':<24}{g['median_ms']:>12.2f}{g['cpu_median_ms']:>10.2f}")
+    v = res["virtual_headings_150x22"]
+    lines.append(f"{'3-deg map, 150 x 22':<24}{v['median_ms']:>12.2f}{v['cpu_median_ms']:>10.2f}"
+                 f"   ({v['map_entries']} entries: virtual headings)")
     t = res["target"]
     lines.append(f"target <= {t['ms_max']} ms at 150 particles x 22 actions: wall {'met' if t['met_wall'] else 'NOT met'}, "
                  f"cpu {'met' if t['met_cpu'] else 'NOT met'}")

@@ -2,7 +2,8 @@
 
     lino-loc map build DATASET --out MAP [--features 20] [--preprocess none|histeq|gradient]
                        [--size 80x60] [--condition tube] [--method randomized|gram|svd]
-                       [--channels intensity[,disparity]] [--json]
+                       [--channels intensity[,disparity]]
+                       [--virtual-headings N [--virtual-step DEG]] [--json]
     lino-loc map info MAP [--json]
 
 A malformed dataset folder or a bad map file is a user error: one line on stderr, exit 2.
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 import time
 
@@ -20,6 +22,7 @@ from lino_loc.appearance_map import DEFAULT_FEATURES, DEFAULT_SIZE, AppearanceMa
 from lino_loc.dataset import Dataset
 from lino_loc.pca import PCA_METHODS
 from lino_loc.preprocessing import PREPROCESS_METHODS
+from lino_loc.virtual_views import offsets
 from services.progress import Progress
 
 log = logging.getLogger("lino_loc.map")
@@ -42,9 +45,20 @@ def _channels(text: str) -> tuple[str, ...]:
     return chans
 
 
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return v
+
+
 def _build(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     ds = Dataset.open(args.dataset)
+    virtual = None if args.virtual_headings == 1 else offsets(math.radians(args.virtual_step), args.virtual_headings)
     bar = Progress("map build")
     try:
         amap = build_map(
@@ -56,6 +70,7 @@ def _build(args: argparse.Namespace) -> int:
             progress=bar.update,
             method=args.method,
             channels=args.channels,
+            virtual_offsets=virtual,
         )
     finally:
         bar.close()
@@ -63,7 +78,8 @@ def _build(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     summary = {
         "map": str(path),
-        "images": len(amap),
+        "images": len(amap) // args.virtual_headings,
+        "entries": len(amap),
         "features": args.features,
         "preprocess": args.preprocess,
         "size": list(args.size),
@@ -74,7 +90,8 @@ def _build(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         print(
-            f"wrote {path}: {len(amap)} images, {args.features} features, "
+            f"wrote {path}: {len(amap)} entries ({len(amap) // args.virtual_headings} images x "
+            f"{args.virtual_headings} headings), {args.features} features, "
             f"{args.preprocess}, {args.size[0]}x{args.size[1]}, channels "
             f"{','.join(sorted(amap.channels))} in {elapsed:.1f} s",
             file=sys.stderr,
@@ -98,6 +115,10 @@ def _info(args: argparse.Namespace) -> int:
         + (f" baseline {cam['baseline_m']} m" if cam.get("baseline_m") else ""),
     ]
     for name, ch in info["channels"].items():
+        virt = ch["params"].get("virtual_offsets_deg")
+        if virt:
+            lines.append(f"virtual    {name}: every image also turned by {virt} deg "
+                         f"({ch['params'].get('margin')} columns cropped each side)")
         frac = f", {100 * ch['variance_fraction']:.1f}% of the variance" if "variance_fraction" in ch else ""
         lines.append(
             f"channel    {name}: {ch['n_features']} features, preprocess {ch['preprocess']}, "
@@ -128,6 +149,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--channels", type=_channels, default=("intensity",), metavar="LIST",
         help="intensity or intensity,disparity (default intensity)",
     )
+    p.add_argument(
+        "--virtual-headings", type=_positive_int, default=1, metavar="N",
+        help="map entries per image: the image turned by N headings --virtual-step apart, centred on the "
+        "image's own (lino_loc.virtual_views; 5 with a 15 deg survey gives a map every 3 deg). Default 1: "
+        "the images alone",
+    )
+    p.add_argument("--virtual-step", type=float, default=3.0, metavar="DEG",
+                   help="degrees between virtual headings (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
     p.set_defaults(func=_build)
 

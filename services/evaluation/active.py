@@ -43,14 +43,17 @@ from typing import Any
 
 import numpy as np
 
+from drivers.sim.renderer import CameraModel
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.active_vision import ActionEvaluator, ActiveVisionConfig, belief_entropy
+from lino_loc.appearance_map import intensity_channel_from_vectors, virtual_setup
+from lino_loc.dataset import CameraInfo
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
-from lino_loc.pca import fit_pca
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
+from lino_loc.virtual_views import augment_poses, crop_columns, offsets
 from services.evaluation.views import ViewSpec, render_vectors
 
 log = logging.getLogger(__name__)
@@ -67,6 +70,8 @@ class ActiveSetup:
     lighting: str = "tube"
     step: float = 0.75
     heading_step_deg: float = 15.0
+    virtual_headings: int = 5
+    virtual_step_deg: float = 3.0
     features: int = 5
     preprocess: str = "none"
     j: int = 10
@@ -144,18 +149,33 @@ def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> 
     raise RuntimeError("could not place the test positions")
 
 
-def render_map(setup: ActiveSetup, grid: np.ndarray, progress: ProgressFn | None) -> tuple[Any, np.ndarray]:
-    """PCA (eq. 1) of the grid views and the map features (N, d)."""
+def virtual(setup: ActiveSetup) -> tuple[np.ndarray, list[float], int] | None:
+    """The map's virtual headings (lino_loc.virtual_views), None for the paper's plain map."""
+    if setup.virtual_headings <= 1:
+        return None
+    fx, fy, cx, cy = CameraModel(width=setup.width, height=setup.height).intrinsics()
+    cam = CameraInfo(width=setup.width, height=setup.height, fx=fx, fy=fy, cx=cx, cy=cy)
+    return virtual_setup(cam, setup.size, offsets(math.radians(setup.virtual_step_deg), setup.virtual_headings))
+
+
+def render_map(
+    setup: ActiveSetup, grid: np.ndarray, progress: ProgressFn | None
+) -> tuple[Any, np.ndarray, np.ndarray, int]:
+    """PCA (eq. 1) of the grid views (and their virtual headings), the map features (N, d), the
+    poses (N, 3) of the map entries and the columns cropped each side of a view."""
     spec = ViewSpec(world=setup.world, lighting=setup.lighting, width=setup.width, height=setup.height,
                     size=setup.size, preprocess=(setup.preprocess,), seed=setup.seed)
     X = render_vectors(spec, grid, workers=setup.workers,
                        progress=(lambda d, n: progress("map", d, n)) if progress else None)[setup.preprocess]
-    pca = fit_pca(X, setup.features, seed=setup.seed)
-    return pca, np.asarray(pca.project(X), dtype=np.float64)
+    v = virtual(setup)
+    ch = intensity_channel_from_vectors(X, setup.preprocess, setup.size, setup.features,  # type: ignore[arg-type]
+                                        virtual=v, seed=setup.seed)
+    poses = grid.copy() if v is None else augment_poses(grid, v[1])
+    return ch.pca, np.asarray(ch.features, dtype=np.float64), poses, 0 if v is None else v[2]
 
 
 def render_tests(
-    setup: ActiveSetup, pca: Any, truths: np.ndarray, pans: np.ndarray, changes: tuple[str, ...],
+    setup: ActiveSetup, pca: Any, margin: int, truths: np.ndarray, pans: np.ndarray, changes: tuple[str, ...],
     progress: ProgressFn | None,
 ) -> np.ndarray:
     """Features (P, A, d) of the view at every test position and candidate pan."""
@@ -167,36 +187,40 @@ def render_tests(
     label = "tests" + ("+" + "+".join(changes) if changes else "")
     X = render_vectors(spec, cams.reshape(-1, 3), workers=setup.workers,
                        progress=(lambda d, n: progress(label, d, n)) if progress else None)[setup.preprocess]
+    X = crop_columns(X, setup.size, margin)
     return np.asarray(pca.project(X), dtype=np.float64).reshape(truths.shape[0], pans.size, -1)
 
 
-def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, map_features: np.ndarray, truths: np.ndarray,
+def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
+                        truths: np.ndarray,
                         pans: np.ndarray, feats: np.ndarray) -> dict[str, float]:
     """How well single test views match the map: over all test views, the fraction whose
     truth map cell (nearest grid pose to the camera pose, grid units) is the nearest map entry in
     feature space, and is among the J nearest; the fraction of the J neighbours within one
     grid step (position and heading) of the camera pose."""
-    model = NearestNeighbourSensorModel(grid, map_features, setup.sensor_config())
+    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
     cams = np.repeat(truths[:, None, :], pans.size, axis=1)
     cams[:, :, 2] = wrap_angle(cams[:, :, 2] + pans[None, :])
     cams = cams.reshape(-1, 3)
     cell = nearest_map_index(cams, grid, setup.step, math.radians(setup.heading_step_deg))
     idx, _ = model.neighbours(feats.reshape(cams.shape[0], -1))
-    near = (np.hypot(grid[idx, 0] - cams[:, None, 0], grid[idx, 1] - cams[:, None, 1]) <= setup.step * 1.05) & (
-        np.abs(wrap_angle(grid[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
+    idx_cell = nearest_map_index(entries, grid, setup.step, math.radians(setup.heading_step_deg))[idx]
+    near = (np.hypot(entries[idx, 0] - cams[:, None, 0], entries[idx, 1] - cams[:, None, 1]) <= setup.step * 1.05) & (
+        np.abs(wrap_angle(entries[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
     return {
-        "truth_cell_is_nearest_in_features": float(np.mean(idx[:, 0] == cell)),
-        "truth_cell_among_j_nearest": float(np.mean(np.any(idx == cell[:, None], axis=1))),
+        "truth_cell_is_nearest_in_features": float(np.mean(idx_cell[:, 0] == cell)),
+        "truth_cell_among_j_nearest": float(np.mean(np.any(idx_cell == cell[:, None], axis=1))),
         "j_neighbours_within_one_grid_step": float(near.mean()),
     }
 
 
-def ideal_success(setup: ActiveSetup, grid: np.ndarray, map_features: np.ndarray, truths: np.ndarray,
+def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
+                  truths: np.ndarray,
                   pans: np.ndarray, feats: np.ndarray, images: tuple[int, ...] = (1, 2, 4, 11)) -> dict[str, float]:
     """Upper bound of the sensor model, without particles: the posterior of the first k images
     (first pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped
     area + 30 cm), its maximum as the estimate; success ratio over the test positions."""
-    model = NearestNeighbourSensorModel(grid, map_features, setup.sensor_config())
+    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
     xmin, xmax = grid[:, 0].min() - 0.3, grid[:, 0].max() + 0.3
     ymin, ymax = grid[:, 1].min() - 0.3, grid[:, 1].max() + 0.3
     gx, gy, gh = np.meshgrid(np.arange(xmin, xmax + 1e-9, 0.1), np.arange(ymin, ymax + 1e-9, 0.1),
@@ -229,10 +253,12 @@ def ideal_success(setup: ActiveSetup, grid: np.ndarray, map_features: np.ndarray
 _ctx: dict[str, Any] = {}
 
 
-def _init_worker(setup: ActiveSetup, map_poses: np.ndarray, map_features: np.ndarray) -> None:
+def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarray, map_poses: np.ndarray) -> None:
+    """``entries``: poses of the sensor model's map entries; ``map_poses``: the survey grid
+    (the success criteria's training points)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     world = load_world(setup.world)
-    model = NearestNeighbourSensorModel(map_poses, map_features, setup.sensor_config())
+    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
     _ctx.update(setup=setup, world=world, model=model, evaluator=ActionEvaluator(model, setup.active_config()),
                 map_poses=map_poses)
 
@@ -332,6 +358,34 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
     return {"pos": pos, "strategies": out, "eval_ms": eval_ms, "snapshots": snaps, "covered": covered}
 
 
+#: Bands of the test position's distance to the nearest map position (m) for
+#: ``success_by_grid_distance``: the section 6.1 criterion asks the estimate to fall in the
+#: truth's map cell, so near a cell border (0.375 m from a grid position on a 75 cm grid) an
+#: error of a few centimetres decides it.
+GRID_DISTANCE_BANDS: tuple[tuple[float, float], ...] = ((0.0, 0.25), (0.25, 0.35), (0.35, math.inf))
+
+
+def grid_distance(truths: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Distance (m) from each test position to the nearest map position."""
+    g = np.unique(np.round(grid[:, :2], 6), axis=0)
+    return np.min(np.hypot(truths[:, None, 0] - g[None, :, 0], truths[:, None, 1] - g[None, :, 1]), axis=1)
+
+
+def success_by_band(parts: list[dict[str, Any]], strategies: tuple[str, ...], dist: np.ndarray) -> dict[str, Any]:
+    """Success ratio after each movement per strategy, for the test positions in each band of
+    distance to the nearest map position (:data:`GRID_DISTANCE_BANDS`)."""
+    out: dict[str, Any] = {}
+    for lo, hi in GRID_DISTANCE_BANDS:
+        sel = [p for p in parts if lo <= dist[p["pos"]] < hi]
+        key = f"{lo:.2f}-{hi:.2f}" if math.isfinite(hi) else f"{lo:.2f}-"
+        out[key] = {"positions": len(sel)}
+        for s in strategies:
+            if sel:
+                suc = np.concatenate([p["strategies"][s]["success"] for p in sel])
+                out[key][s] = [float(v) for v in suc.mean(axis=0)]
+    return out
+
+
 def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
     summary: dict[str, Any] = {}
     for s in strategies:
@@ -353,14 +407,14 @@ def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict
 
 
 def run_condition(
-    setup: ActiveSetup, map_poses: np.ndarray, map_features: np.ndarray, truths: np.ndarray,
-    feats: np.ndarray, progress: ProgressFn | None, label: str,
+    setup: ActiveSetup, map_poses: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
+    truths: np.ndarray, feats: np.ndarray, progress: ProgressFn | None, label: str,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     jobs = [(i, truths[i], feats[i]) for i in range(truths.shape[0])]
     workers = setup.workers or os.cpu_count() or 1
     parts: list[dict[str, Any]] = []
     if workers == 1:
-        _init_worker(setup, map_poses, map_features)
+        _init_worker(setup, entries, map_features, map_poses)
         it = map(run_position, jobs)
         for part in it:
             parts.append(part)
@@ -368,7 +422,7 @@ def run_condition(
                 progress(label, len(parts), len(jobs))
     else:
         with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(setup, map_poses, map_features)) as pool:
+                                 initargs=(setup, entries, map_features, map_poses)) as pool:
             for part in pool.map(run_position, jobs):
                 parts.append(part)
                 if progress:
@@ -384,7 +438,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     changes = world.check_changes(setup.scene_changes)
     grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
     pans = setup.active_config().actions()
-    pca, map_features = render_map(setup, grid, progress)
+    pca, map_features, entries, margin = render_map(setup, grid, progress)
     truths = place_test_positions(world, setup, grid)
     conditions: list[tuple[str, tuple[str, ...]]] = [("none", ())]
     if changes:
@@ -393,15 +447,18 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     extras: dict[str, Any] = {"world": world, "grid": grid, "truths": truths, "pans": pans}
     timing: list[float] = []
     diagnostics: dict[str, Any] = {}
+    bands: dict[str, Any] = {}
     for name, ch in conditions:
-        feats = render_tests(setup, pca, truths, pans, ch, progress)
-        summary, parts = run_condition(setup, grid, map_features, truths, feats, progress,
+        feats = render_tests(setup, pca, margin, truths, pans, ch, progress)
+        summary, parts = run_condition(setup, grid, entries, map_features, truths, feats, progress,
                                        "runs" + ("" if not ch else f" ({name})"))
+        bands[name] = success_by_band(parts, setup.strategies, grid_distance(truths, grid))
         results[name] = summary
         extras[name] = parts
-        diagnostics[name] = feature_diagnostics(setup, grid, map_features, truths, pans, feats)
+        diagnostics[name] = feature_diagnostics(setup, grid, entries, map_features, truths, pans, feats)
         if setup.ideal:
-            diagnostics[name]["ideal_map_estimate_success"] = ideal_success(setup, grid, map_features, truths, pans, feats)
+            diagnostics[name]["ideal_map_estimate_success"] = ideal_success(setup, grid, entries, map_features, truths,
+                                                                            pans, feats)
         diagnostics[name]["initial_particle_in_truth_cell"] = float(np.mean([c for p in parts for c in p["covered"]]))
         timing.extend(v for p in parts for v in p["eval_ms"])
     base = results["none"]
@@ -412,14 +469,17 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
         "movements": int(setup.movements),
         "setup": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(setup).items()
                   if k not in ("workers", "snapshots", "ideal")},
-        "map_entries": int(grid.shape[0]),
+        "map_images": int(grid.shape[0]),
+        "map_entries": int(entries.shape[0]),
         "test_poses": [[float(v) for v in t] for t in truths],
+        "success_by_grid_distance": bands["none"],
         "entropy_eval_ms_median": float(np.median(timing)) if timing else None,
         "diagnostics": diagnostics,
         "seconds": round(time.perf_counter() - t0, 1),
     }
     if changes:
-        out["scene_changes"] = {"names": list(changes), "strategies": results["+".join(changes)]}
+        out["scene_changes"] = {"names": list(changes), "strategies": results["+".join(changes)],
+                                "success_by_grid_distance": bands["+".join(changes)]}
     return out, extras
 
 
