@@ -11,7 +11,8 @@ from services.progress import Progress
 
 def _run(args: argparse.Namespace) -> int:
     setup = SingleViewSetup(world=args.world, features=args.features, preprocess=args.preprocess,
-                            views=args.views, j=args.j, seed=args.seed, workers=args.workers)
+                            views=args.views, j=args.j, seed=args.seed, workers=args.workers,
+                            virtual_headings=args.virtual_headings)
     bar = Progress("render test views")
     result = run(setup, progress=bar.update)
     bar.close()
@@ -34,6 +35,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preprocess", default="none", choices=("none", "histeq", "gradient"))
     p.add_argument("--views", type=int, default=300, help="test views off the map grid")
     p.add_argument("--j", type=int, default=10)
+    p.add_argument("--virtual-headings", type=int, default=1, choices=range(1, 32), metavar="N",
+                   help="map entries per image, turned 3 deg apart (lino_loc.virtual_views); default 1: the images alone")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--json", action="store_true", help="print one JSON object")

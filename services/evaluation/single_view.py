@@ -21,7 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.sim.world import grid_poses, load_world
+from lino_loc.appearance_map import channel_margin
 from lino_loc.metrics import success, success_pose
+from lino_loc.virtual_views import crop_columns
 from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
 
 
@@ -39,6 +41,8 @@ class SingleViewSetup:
     height: int = 240
     seed: int = 0
     workers: int | None = None
+    virtual_headings: int = 1
+    virtual_step_deg: float = 3.0
 
 
 def off_grid_poses(world_name: str, grid: np.ndarray, n: int, min_distance: float, seed: int) -> np.ndarray:
@@ -60,22 +64,24 @@ def off_grid_poses(world_name: str, grid: np.ndarray, n: int, min_distance: floa
 def run(setup: SingleViewSetup, progress: Callable[[int, int], None] | None = None) -> dict:
     amap = build_sim_maps(setup.world, setup.step, setup.heading_step_deg, setup.features,
                           (setup.preprocess,), width=setup.width, height=setup.height,
-                          seed=setup.seed, workers=setup.workers)[setup.preprocess]
+                          seed=setup.seed, workers=setup.workers, virtual_headings=setup.virtual_headings,
+                          virtual_step_deg=setup.virtual_step_deg)[setup.preprocess]
     channel = amap.channels["intensity"]
     grid = grid_poses(load_world(setup.world), setup.step, math.radians(setup.heading_step_deg))
     truths = off_grid_poses(setup.world, grid, setup.views, setup.min_grid_distance, setup.seed)
     spec = ViewSpec(world=setup.world, width=setup.width, height=setup.height, size=channel.size,
                     preprocess=(setup.preprocess,), seed=setup.seed + 1)
-    y = channel.pca.project(render_vectors(spec, truths, workers=setup.workers, progress=progress)[setup.preprocess])
+    X = render_vectors(spec, truths, workers=setup.workers, progress=progress)[setup.preprocess]
+    y = channel.pca.project(crop_columns(X, channel.size, channel_margin(channel)))
     d2 = ((y[:, None, :] - channel.features[None, :, :]) ** 2).sum(axis=2)
     order = np.argsort(d2, axis=1)[:, : setup.j]
     step_rad = math.radians(setup.heading_step_deg)
 
     def ok(idx: np.ndarray) -> np.ndarray:
-        return success(amap.poses[idx], truths, amap.poses)
+        return success(amap.poses[idx], truths, grid)
 
     def ok_pose(idx: np.ndarray) -> np.ndarray:
-        return success_pose(amap.poses[idx], truths, amap.poses, setup.step, step_rad)
+        return success_pose(amap.poses[idx], truths, grid, setup.step, step_rad)
 
     rng = np.random.default_rng((setup.seed, 13))
     random_idx = rng.integers(0, len(amap.poses), len(truths))
@@ -87,6 +93,7 @@ def run(setup: SingleViewSetup, progress: Callable[[int, int], None] | None = No
         figures[f"chance_success{suffix}"] = float(criterion(random_idx).mean())
     return {
         "world": setup.world,
+        "map_images": int(len(grid)),
         "map_entries": int(len(amap.poses)),
         "features": setup.features,
         "preprocess": setup.preprocess,

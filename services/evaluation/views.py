@@ -182,6 +182,8 @@ def build_sim_maps(
     workers: int | None = None,
     cache: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    virtual_headings: int = 1,
+    virtual_step_deg: float = 3.0,
 ) -> dict[str, AppearanceMap]:
     """Appearance maps (eq. 1) of a simulated survey, one per preprocessing, built in memory.
 
@@ -190,19 +192,22 @@ def build_sim_maps(
     the building as it was), rendered under ``lighting`` with pan 0 (camera pose = robot
     pose); the PCA is the map builder's (randomized, ``seed``). With ``cache`` each map is
     kept as a map file under :func:`map_cache_dir`, keyed by every parameter and the world's
-    fingerprint, and loaded from there next time.
+    fingerprint, and loaded from there next time. ``virtual_headings`` > 1: every image also
+    gives that many views turned ``virtual_step_deg`` apart (:mod:`lino_loc.virtual_views`).
     """
     import math
 
-    from lino_loc.appearance_map import AppearanceMap, ChannelMap, _project_rows
+    from lino_loc.appearance_map import AppearanceMap, intensity_channel_from_vectors, virtual_setup
     from lino_loc.dataset import CameraInfo
-    from lino_loc.pca import fit_pca
+    from lino_loc.virtual_views import augment_poses, offsets
 
     w = load_world(world)
     cam = CameraModel(width=width, height=height)
     key = (
         f"{w.name}-{lighting}-{step:g}m-{heading_step_deg:g}deg-{features}f-{{pre}}-{width}x{height}-"
-        f"{size[0]}x{size[1]}-s{seed}-{w.fingerprint[:10]}.npz"
+        f"{size[0]}x{size[1]}-s{seed}"
+        + (f"-v{virtual_headings}x{virtual_step_deg:g}" if virtual_headings > 1 else "")
+        + f"-{w.fingerprint[:10]}.npz"
     )
     out: dict[str, AppearanceMap] = {}
     missing = []
@@ -223,13 +228,13 @@ def build_sim_maps(
     vectors = render_vectors(spec, poses, workers=workers, progress=progress)
     fx, fy, cx, cy = cam.intrinsics()
     info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)
+    virtual = None if virtual_headings <= 1 else virtual_setup(
+        info, size, offsets(math.radians(virtual_step_deg), virtual_headings))
     for pre in missing:
-        X = vectors[pre]
-        pca = fit_pca(X, features, seed=seed)
-        Y, total = _project_rows(pca, X)
-        ch = ChannelMap(name="intensity", preprocess=pre, size=(int(size[0]), int(size[1])), pca=pca,
-                        features=Y, method="randomized", params={"total_variance": total, "seed": seed})
-        amap = AppearanceMap(poses=poses.copy(), channels={"intensity": ch}, camera=info,
+        ch = intensity_channel_from_vectors(vectors[pre], pre, size, features,  # type: ignore[arg-type]
+                                            virtual=virtual, seed=seed)
+        map_poses = poses.copy() if virtual is None else augment_poses(poses, virtual[1])
+        amap = AppearanceMap(poses=map_poses, channels={"intensity": ch}, camera=info,
                              source=f"sim:{w.name}", name=f"{w.name}-{lighting}", condition=lighting)
         if cache:
             path = map_cache_dir() / key.format(pre=pre)
