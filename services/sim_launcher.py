@@ -327,7 +327,7 @@ def ensure_sim_map(
         world_fp = _world_fingerprint(cfg.map.build.world)
         amap = _cached(Path(cfg.map.path), _build_record(cfg.map.build, world_fp))
         if amap is not None:
-            log.info("using the cached simulated map %s (%d images)", cfg.map.path, len(amap))
+            log.info("using the cached simulated map %s (%d map entries)", cfg.map.path, len(amap))
             return amap, False
         code = subprocess.run(  # noqa: S603 - our own interpreter and module
             [sys.executable, "-c", "import sys; from services.sim_launcher import _build_main; "
@@ -351,7 +351,7 @@ def ensure_sim_map(
     record = _build_record(build, world.fingerprint)
     amap = _cached(map_path, record)
     if amap is not None:
-        log.info("using the cached simulated map %s (%d images)", map_path, len(amap))
+        log.info("using the cached simulated map %s (%d map entries)", map_path, len(amap))
         return amap, False
     with _file_lock(map_path.with_name(map_path.name + ".lock")):
         amap = _cached(map_path, record)  # another process may have built it meanwhile
@@ -387,5 +387,5 @@ def ensure_sim_map(
             os.replace(tmp, side)
         finally:
             shutil.rmtree(survey_dir, ignore_errors=True)
-        log.info("simulated map built: %d images in %.1f s -> %s", len(amap), time.monotonic() - t0, map_path)
+        log.info("simulated map built: %d map entries in %.1f s -> %s", len(amap), time.monotonic() - t0, map_path)
         return amap, True
