@@ -356,20 +356,8 @@ class ActionEvaluator:
         column order, and the column of the nearest map entry to each camera pose (A, M)."""
         a_n, m = u.size, p.shape[0]
         if self.grid:
-            pos, hd = self._positions, self._headings
-            dx = pos[:, 0:1] - p[None, :, 0]
-            dy = pos[:, 1:2] - p[None, :, 1]
-            lg = -(dx * dx + dy * dy) / (2.0 * self.sigma_xy**2)  # (P, M)
-            near_p = np.argmax(lg, axis=0)
-            g = np.exp(lg.astype(np.float32))
-            cam = p[None, :, 2] + u[:, None]  # (A, M)
-            ang = np.cos(cam[:, None, :] - hd[None, :, None])  # (A, H, M)
-            near_h = np.argmax(ang, axis=1)
-            ang -= 1.0
-            ang *= self.kappa
-            v = np.exp(ang.astype(np.float32))
+            g, v, pred = self._grid_factors(p, u)
             kern = g[None, :, None, :] * v[:, None, :, :]  # (A, P, H, M)
-            pred = near_p[None, :] * hd.size + near_h
             return kern.reshape(a_n, -1, m), pred.astype(np.int64)
         cam = np.repeat(p[None, :, :], a_n, axis=0)
         cam[:, :, 2] = cam[:, :, 2] + u[:, None]
@@ -383,6 +371,26 @@ class ActionEvaluator:
         np.exp(t, out=t)
         kern = t.reshape(-1, a_n, m).transpose(1, 0, 2)
         return np.ascontiguousarray(kern), np.asarray(near, dtype=np.int64).reshape(a_n, m)
+
+    def _grid_factors(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, np.ndarray, IntArray]:
+        """On a product grid the kernel factorizes, exp(-|e(m_(p,h)) - e(c_ak)|^2 / 2) =
+        g[p, k] v[a, h, k]: position factor g (P, M), heading factor v (A, H, M) (float32), and
+        the column of the nearest map entry to each camera pose (A, M)."""
+        pos = self._positions
+        dx = pos[:, 0:1] - p[None, :, 0]
+        dy = pos[:, 1:2] - p[None, :, 1]
+        lg = -(dx * dx + dy * dy) / (2.0 * self.sigma_xy**2)  # (P, M)
+        near_p = np.argmax(lg, axis=0)
+        g = np.exp(lg.astype(np.float32))
+        cam = p[None, :, 2] + u[:, None]  # (A, M)
+        # cos(cam - h) = cos cam cos h + sin cam sin h, in float32 (A, H, M)
+        ang = np.cos(cam).astype(np.float32)[:, None, :] * self._cos_h[None, :, None]
+        ang += np.sin(cam).astype(np.float32)[:, None, :] * self._sin_h[None, :, None]
+        near_h = np.argmax(ang, axis=1)
+        ang -= np.float32(1.0)
+        ang *= np.float32(self.kappa)
+        v = np.exp(ang, out=ang)
+        return g, v, near_p[None, :] * self._headings.size + near_h
 
     def _mixture_sums(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, IntArray]:
         """S[a, i, k] = sum_j (1 - w_out) lambda_j exp(-|e(m_j) - e(c_ak)|^2 / 2) for the
@@ -409,22 +417,9 @@ class ActionEvaluator:
         whatever the map size. Used when the table would be larger (many headings: maps with
         virtual headings, :mod:`lino_loc.virtual_views`)."""
         a_n, m = u.size, p.shape[0]
-        pos, hd = self._positions, self._headings
-        n_h = hd.size
-        dx = pos[:, 0:1] - p[None, :, 0]
-        dy = pos[:, 1:2] - p[None, :, 1]
-        lg = -(dx * dx + dy * dy) / (2.0 * self.sigma_xy**2)  # (P, M)
-        near_p = np.argmax(lg, axis=0)
-        g = np.exp(lg.astype(np.float32))
-        cam = p[None, :, 2] + u[:, None]  # (A, M)
-        # cos(cam - h) = cos cam cos h + sin cam sin h, in float32 (A, H, M)
-        ang = np.cos(cam).astype(np.float32)[:, None, :] * self._cos_h[None, :, None]
-        ang += np.sin(cam).astype(np.float32)[:, None, :] * self._sin_h[None, :, None]
-        near_h = np.argmax(ang, axis=1)
-        ang -= np.float32(1.0)
-        ang *= np.float32(self.kappa)
-        v = np.exp(ang, out=ang).reshape(a_n * n_h, m)
-        pred_col = near_p[None, :] * n_h + near_h  # (A, M)
+        n_h = self._headings.size
+        g, v3, pred_col = self._grid_factors(p, u)
+        v = v3.reshape(a_n * n_h, m)
         lam = self._nn_lam[pred_col]  # (A, M, J)
         kern = g[self._nn_pcol[pred_col]]  # (A, M, J, M): position factor of each neighbour
         kern *= v[self._nn_hcol[pred_col] + (np.arange(a_n) * n_h)[:, None, None]]  # heading factor
