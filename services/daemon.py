@@ -270,6 +270,9 @@ class Daemon:
         self.frames_used = 0
         self.frames_skipped = 0  # out of order
         self.frames_head_moving = 0
+        self.av_commands = 0
+        self.av_last_decision: str | None = None
+        self.av_last_command: float | None = None
         self.dead_reckoning = False
         self._last_update_stamp: float | None = None
         self._last_frame_mono: float | None = None
@@ -527,6 +530,11 @@ class Daemon:
         except Exception as exc:  # noqa: BLE001 - active vision must not stop localization
             log.warning("active vision failed: %s: %s", type(exc).__name__, exc)
             return
+        with self._lock:
+            self.av_last_decision = d.reason
+            if d.command is not None:
+                self.av_commands += 1
+                self.av_last_command = float(d.command)
         if d.command is not None:
             log.debug("active vision: pan -> %.2f rad", d.command)
             head.command(float(d.command), 0.0)
@@ -558,10 +566,8 @@ class Daemon:
 
     def build_status(self) -> StatusMessage:
         health = self.device_health()
+        av = self._av_info()
         with self._lock:
-            av = ActiveVisionInfo(
-                enabled=self.av_enabled, paused=self.av_paused, head_paused=self.head_paused
-            )
             latency = self._latency_stats
             pose_rate, frame_rate = self._rates
         return StatusMessage(
@@ -571,6 +577,7 @@ class Daemon:
             frame_rate_hz=frame_rate,
             frames=self.mailbox.received,
             dropped_frames=self.dropped_frames(),
+            out_of_order_frames=self.frames_skipped,
             latency_ms=latency,
             devices={k: DeviceHealthModel.from_health(h) for k, h in health.items()},
             uptime_s=time.monotonic() - self._started_mono,
@@ -713,5 +720,7 @@ class Daemon:
     def _av_info(self) -> ActiveVisionInfo:
         with self._lock:
             return ActiveVisionInfo(
-                enabled=self.av_enabled, paused=self.av_paused, head_paused=self.head_paused
+                enabled=self.av_enabled, paused=self.av_paused, head_paused=self.head_paused,
+                head_commands=self.av_commands, last_decision=self.av_last_decision,
+                last_command_rad=self.av_last_command, frames_head_moving=self.frames_head_moving,
             )

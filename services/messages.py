@@ -234,6 +234,16 @@ class ActiveVisionInfo(BaseModel):
     enabled: bool
     paused: bool = False
     head_paused: bool = False
+    head_commands: int = Field(0, ge=0, description="pan commands sent by active vision since start")
+    last_decision: str | None = Field(
+        None,
+        description="the policy's last answer: move, home, converged, no gain, stay, settling, "
+        "interval, head moving, no new frame",
+    )
+    last_command_rad: Finite | None = Field(None, description="the last pan command (radians)")
+    frames_head_moving: int = Field(
+        0, ge=0, description="frames used for prediction only: taken while the head turned or settled"
+    )
 
 
 class StatusMessage(_Published):
@@ -245,6 +255,9 @@ class StatusMessage(_Published):
     frame_rate_hz: Finite = Field(ge=0.0, description="camera frames received per second")
     frames: int = Field(0, ge=0, description="frames received since start")
     dropped_frames: int = Field(0, ge=0, description="frames dropped since start (loop busy)")
+    out_of_order_frames: int = Field(
+        0, ge=0, description="frames skipped because they were older than the last one used"
+    )
     latency_ms: LatencyStats = Field(default_factory=LatencyStats)
     devices: dict[str, DeviceHealthModel] = Field(
         default_factory=dict, description="keys: camera, head, odometry"

@@ -107,7 +107,7 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
     "status": [
         {
             "v": 1, "stamp": 1763767826.0, "state": "tracking", "pose_rate_hz": 14.9,
-            "frame_rate_hz": 15.0, "frames": 27510, "dropped_frames": 12,
+            "frame_rate_hz": 15.0, "frames": 27510, "dropped_frames": 12, "out_of_order_frames": 0,
             "latency_ms": {"p50": 21.3, "p99": 48.0},
             "devices": {
                 "camera": {"state": "ok", "error": None, "error_stamp": None, "counters": {"frames": 27510}},
@@ -119,7 +119,9 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
             "uptime_s": 1834.5,
             "map": {"path": "/var/lib/lino-loc/map.npz", "n_images": 408,
                     "channels": ["intensity"], "checksum": "sha256:9f2c41"},
-            "active_vision": {"enabled": True, "paused": False, "head_paused": False},
+            "active_vision": {"enabled": True, "paused": False, "head_paused": False, "head_commands": 3,
+                              "last_decision": "converged", "last_command_rad": 0.0,
+                              "frames_head_moving": 12},
             "simulated": False, "version": "0.1.0",
         },
     ],
@@ -146,7 +148,8 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
         {"v": 1, "ok": True, "cmd": "set_pose", "message": "filter reinitialised around (2, 1, 3.14)"},
         {"v": 1, "ok": True, "cmd": "global_localization", "message": None},
         {"v": 1, "ok": True, "cmd": "set_active_vision",
-         "active_vision": {"enabled": False, "paused": False, "head_paused": False}},
+         "active_vision": {"enabled": False, "paused": False, "head_paused": False, "head_commands": 0,
+                           "last_decision": None, "last_command_rad": None, "frames_head_moving": 0}},
         {"v": 1, "ok": True, "cmd": "save_state", "path": "/var/lib/lino-loc/state.json",
          "stamp": 1763767826.3},
         {"v": 1, "ok": True, "cmd": "get_pose", "pose": None},

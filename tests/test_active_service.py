@@ -257,6 +257,10 @@ def run_start(tmp: Path, start: tuple[float, float, float], window: float = WIND
         if t0 is not None:
             while time.time() < t0 + window and daemon.poll() is None:
                 time.sleep(0.1)
+            st = request(rep, {"cmd": "status"})  # the status tells what active vision did
+            av = st["status"]["active_vision"]
+            assert st["ok"] and av["head_commands"] >= 1 and av["last_decision"] is not None, av
+            assert av["last_command_rad"] is not None and abs(av["last_command_rad"]) <= 1.6 + 1e-9, av
             t_off = time.time()
             r1 = request(rep, {"cmd": "set_active_vision", "enabled": False})  # head back to pan 0
             assert r1["ok"], r1
