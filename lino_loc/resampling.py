@@ -3,7 +3,8 @@
 Every scheme has the same signature ``scheme(log_weights, rng, n=None) -> indices``: it takes
 (possibly unnormalized) log-weights of shape (N,), a ``numpy.random.Generator`` and the number
 of draws ``n`` (default N), and returns ``n`` ancestor indices (int64) whose expected counts are
-``n * w_i`` with ``w = softmax(log_weights)`` (all three are unbiased). They differ in variance:
+``n * w_i`` with ``w = softmax(log_weights)`` (all three are unbiased). The schemes of
+:data:`SCHEMES` also take ``weights=`` (that softmax, when the caller has computed it). They differ in variance:
 systematic < stratified < multinomial (Douc, Cappe & Moulines, "Comparison of resampling
 schemes for particle filtering", 2005). Systematic is the default of the filter.
 
@@ -81,29 +82,55 @@ def _inverse_cdf(weights: FloatArray, uniforms: FloatArray) -> IntArray:
     """Indices i with cdf[i-1] <= u < cdf[i] for sorted uniforms in [0, 1)."""
     cdf = np.cumsum(weights)
     cdf[-1] = 1.0  # guard against round-off: every u < 1 finds a bin
-    idx = np.searchsorted(cdf, uniforms, side="right")
-    return np.minimum(idx, weights.size - 1).astype(np.int64)
+    idx = np.searchsorted(cdf, uniforms, side="right").astype(np.int64, copy=False)
+    return np.minimum(idx, weights.size - 1, out=idx)
 
 
-def systematic(log_weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> IntArray:
-    """Systematic resampling: one uniform U, points (k + U) / n, k = 0..n-1."""
-    w = weights_from_log(log_weights)
+def _weights(log_weights: ArrayLike, weights: FloatArray | None) -> FloatArray:
+    return weights_from_log(log_weights) if weights is None else weights
+
+
+def systematic(
+    log_weights: ArrayLike,
+    rng: np.random.Generator,
+    n: int | None = None,
+    *,
+    weights: FloatArray | None = None,
+) -> IntArray:
+    """Systematic resampling: one uniform U, points (k + U) / n, k = 0..n-1.
+
+    ``weights``: softmax(log_weights) when the caller already has it (saves an exp pass)."""
+    w = _weights(log_weights, weights)
     m = w.size if n is None else int(n)
-    u = (np.arange(m) + rng.random()) / m
+    u = np.arange(m, dtype=np.float64)
+    u += rng.random()
+    u /= m
     return _inverse_cdf(w, u)
 
 
-def stratified(log_weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> IntArray:
+def stratified(
+    log_weights: ArrayLike,
+    rng: np.random.Generator,
+    n: int | None = None,
+    *,
+    weights: FloatArray | None = None,
+) -> IntArray:
     """Stratified resampling: one uniform in each stratum [k/n, (k+1)/n)."""
-    w = weights_from_log(log_weights)
+    w = _weights(log_weights, weights)
     m = w.size if n is None else int(n)
     u = (np.arange(m) + rng.random(m)) / m
     return _inverse_cdf(w, u)
 
 
-def multinomial(log_weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> IntArray:
+def multinomial(
+    log_weights: ArrayLike,
+    rng: np.random.Generator,
+    n: int | None = None,
+    *,
+    weights: FloatArray | None = None,
+) -> IntArray:
     """Multinomial resampling: n independent draws from the categorical distribution w."""
-    w = weights_from_log(log_weights)
+    w = _weights(log_weights, weights)
     m = w.size if n is None else int(n)
     u = np.sort(rng.random(m))
     return _inverse_cdf(w, u)

@@ -129,3 +129,51 @@ def test_noise_floor_spreads_a_still_robot() -> None:
     # defaults: a floor of 1 cm and 0.5 deg is on
     cfg = MotionModelConfig()
     assert cfg.min_sigma_xy == pytest.approx(0.01) and np.degrees(cfg.min_sigma_theta) == pytest.approx(0.5, abs=0.01)
+
+
+def _textbook_sample(m: OdometryMotionModel, p: np.ndarray, delta, rng) -> np.ndarray:
+    """Table 5.6 literally: perturb rot1, trans, rot2, compose, then add the floor (six normals)."""
+    c = m.config
+    r1, t, r2 = (float(v) for v in decompose(np.asarray(delta), c.min_trans))
+    v1, vt, v2 = m.variances(delta)
+    n = p.shape[0]
+    rr1 = r1 + np.sqrt(v1) * rng.standard_normal(n)
+    tt = t + np.sqrt(vt) * rng.standard_normal(n)
+    rr2 = r2 + np.sqrt(v2) * rng.standard_normal(n)
+    out = compose(p, recompose(rr1, tt, rr2))
+    out += rng.standard_normal((n, 3)) * [c.min_sigma_xy, c.min_sigma_xy, c.min_sigma_theta]
+    out[:, 2] = wrap_angle(out[:, 2])
+    return out
+
+
+@pytest.mark.parametrize("delta", [(0.3, 0.05, 0.2), (0.0, 0.0, 0.0), (-0.2, 0.1, -1.0)])
+def test_sampler_has_the_textbook_distribution(delta) -> None:
+    """The sampler draws four normals per particle (rot2 noise + heading floor as one normal,
+    translation noise + position floor as one normal along and one across the heading); the
+    mean and covariance of (x, y, theta) must be those of the six-normal textbook sampler."""
+    m = OdometryMotionModel(MotionModelConfig(alpha1=0.05, alpha2=0.1, alpha3=0.2, alpha4=0.05,
+                                              min_sigma_xy=0.05, min_sigma_theta=0.05))
+    p = np.tile([1.0, 2.0, 2.8], (N, 1))
+    fast = m.sample(p, delta, np.random.default_rng(8))
+    ref = _textbook_sample(m, p, delta, np.random.default_rng(9))
+    for a in (fast, ref):
+        a[:, 2] = wrap_angle(a[:, 2] - 2.8)  # about the start heading: no cut in the cloud
+    cf, cr = np.cov(fast.T), np.cov(ref.T)
+    se = np.sqrt((np.diag(cf) + np.diag(cr)) / N)
+    np.testing.assert_array_less(np.abs(fast.mean(axis=0) - ref.mean(axis=0)), 5 * se)
+    # covariance entries: standard error sqrt((s_ii s_jj + s_ij^2) / N) each, two samples
+    s = np.sqrt(np.outer(np.diag(cr), np.diag(cr)) + cr**2)
+    np.testing.assert_array_less(np.abs(cf - cr), 5 * np.sqrt(2.0 / N) * s)
+    assert np.all((fast[:, 2] >= -np.pi) & (fast[:, 2] < np.pi))
+
+
+def test_predict_mean_trig_is_predict_mean() -> None:
+    rng = np.random.default_rng(3)
+    p = np.column_stack([rng.uniform(-5, 5, 50), rng.uniform(-5, 5, 50), rng.uniform(-np.pi, np.pi, 50)])
+    m = OdometryMotionModel()
+    d = np.array([0.3, -0.1, 2.5])
+    x, y, c, s = m.predict_mean_trig(p, d, turn=0.7)
+    ref = m.predict_mean(p, d)
+    np.testing.assert_allclose(np.column_stack([x, y]), ref[:, :2], atol=1e-12)
+    np.testing.assert_allclose(c, np.cos(ref[:, 2] + 0.7), atol=1e-12)
+    np.testing.assert_allclose(s, np.sin(ref[:, 2] + 0.7), atol=1e-12)

@@ -114,6 +114,60 @@ def test_component_log_pdf_matches_direct_formula() -> None:
     np.testing.assert_allclose(m.component_log_pdf(x), np.column_stack(direct), atol=1e-9)
 
 
+
+@pytest.mark.parametrize("shared_widths", [True, False])
+@pytest.mark.parametrize("outlier", [0.0, 0.3])
+def test_log_pdf_matches_direct_formula_near_and_far(shared_widths: bool, outlier: float) -> None:
+    """log_pdf (constant shift, no per-pose max) equals the direct log-sum-exp of the kernels
+    and the outlier component, also far outside the bounds where the shifted sum underflows
+    and the exact fallback is taken; log_pdf_trig is the same from cos/sin of the heading."""
+    poses = np.array([[1.0, 1.0, 0.5], [2.5, 2.0, np.pi - 0.1], [3.0, 0.8, -2.0], [0.5, 2.5, 1.0]])
+    sxy = 0.35 if shared_widths else [0.3, 0.2, 0.4, 0.25]
+    sth = 0.3 if shared_widths else [0.3, 0.5, 0.2, 0.4]
+    m = PoseMixture.create(poses, np.log([0.4, 0.3, 0.2, 0.1]), sxy, sth, outlier, BOUNDS, 0.7)
+    rng = np.random.default_rng(3)
+    near = np.column_stack([rng.uniform(-1, 5, 300), rng.uniform(-1, 4, 300), rng.uniform(-4, 4, 300)])
+    far = np.array([[30.0, 1.0, 0.2], [-25.0, -40.0, 3.0], [2.0, 200.0, -1.0]])
+    x = np.concatenate([near, far])
+    terms = []
+    for k in range(m.n_components):
+        mu, s, st = m.poses[k], m.sigma_xy[k], m.sigma_theta[k]
+        g = stats.multivariate_normal(mu[:2], s**2 * np.eye(2)).logpdf(x[:, :2])
+        terms.append(m.log_weights[k] + g + stats.vonmises(1 / st**2, loc=mu[2]).logpdf(x[:, 2]))
+    if outlier > 0:
+        inside = BOUNDS.contains(x[:, :2])
+        terms.append(np.where(inside, np.log(outlier) + BOUNDS.log_uniform_density, -np.inf))
+    from scipy.special import logsumexp
+
+    ref = logsumexp(np.column_stack(terms), axis=1) + 0.7
+    got = m.log_pdf(x)
+    assert np.all(np.isfinite(got[-3:])) and got[-1] < -1e4  # the fallback, not -inf or nan
+    np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-9)
+    trig = m.log_pdf_trig(x[:, 0], x[:, 1], np.cos(x[:, 2]), np.sin(x[:, 2]))
+    np.testing.assert_allclose(trig, got, rtol=1e-13, atol=1e-12)
+
+def test_log_pdf_leaves_out_only_negligible_kernels() -> None:
+    """Poses in a small cloud inside the bounds: the far kernels are left out of the sum (their
+    terms are > 40 nats below the outlier floor) and the density is the direct formula's."""
+    bounds = Bounds(0.0, 20.0, 0.0, 10.0)
+    poses = np.array([[1.0, 1.0, 0.3], [1.4, 1.1, 2.0], [18.0, 9.0, 0.3], [10.0, 5.0, -1.0]])
+    m = PoseMixture.create(poses, np.log([0.4, 0.3, 0.2, 0.1]), 0.35, 0.3, 0.5, bounds)
+    rng = np.random.default_rng(5)
+    x = np.column_stack([rng.normal(1.1, 0.2, 800), rng.normal(1.0, 0.2, 800), rng.uniform(-4, 4, 800)])
+    box = (x[:, 0].min(), x[:, 0].max(), x[:, 1].min(), x[:, 1].max())
+    assert m._active_rows(box).shape[0] == 2  # the path under test is taken
+    from scipy.special import logsumexp
+
+    terms = [
+        m.log_weights[k]
+        + stats.multivariate_normal(poses[k, :2], 0.35**2 * np.eye(2)).logpdf(x[:, :2])
+        + stats.vonmises(1 / 0.3**2, loc=poses[k, 2]).logpdf(x[:, 2])
+        for k in range(4)
+    ]
+    terms.append(np.full(800, np.log(0.5) + bounds.log_uniform_density))
+    np.testing.assert_allclose(m.log_pdf(x), logsumexp(np.column_stack(terms), axis=1), rtol=1e-13)
+
+
 def _random_map(n=500, d=6, seed=0):
     rng = np.random.default_rng(seed)
     poses = np.column_stack(

@@ -1,0 +1,84 @@
+"""The lost test (lino_loc.lost_detection): evidence calibrated by the learnt hit rate, counted
+per independent view."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lino_loc.lost_detection import LostDetector
+
+STEP = np.array([0.35, 0.0, 0.0])  # one independent view per observation
+
+
+def _learn(det: LostDetector, hit_rate: float, n: int = 200, seed: int = 0) -> None:
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        det.update(3.0 if rng.random() < hit_rate else 0.0, STEP)
+
+
+def _misses_until_lost(det: LostDetector, limit: int = 200) -> int | None:
+    for k in range(limit):
+        if det.update(0.0, STEP):
+            return k + 1
+    return None
+
+
+def test_misses_weigh_by_how_reliable_the_views_were() -> None:
+    """After reliable views (hit rate ~0.95) a few misses mean lost; after unreliable ones
+    (~0.3, as under changed light) the same run of misses is not enough."""
+    reliable, unreliable = LostDetector(), LostDetector()
+    _learn(reliable, 0.95)
+    _learn(unreliable, 0.3)
+    assert reliable.hit_rate > 0.85 and 0.15 < unreliable.hit_rate < 0.45
+    fast = _misses_until_lost(reliable)
+    assert fast is not None and fast <= 10, fast  # (8 with the default threshold of 12 nats)
+    for _ in range(fast):
+        unreliable.update(0.0, STEP)
+    assert not unreliable.lost and unreliable.score > 0.0
+    slow = _misses_until_lost(unreliable)
+    assert slow is not None and slow > 3 * fast, (fast, slow)
+
+
+def test_hits_clear_the_evidence_and_a_still_robot_adds_none() -> None:
+    det = LostDetector()
+    _learn(det, 0.95)
+    assert _misses_until_lost(det) is not None
+    assert det.lost
+    score = det.score
+    for _ in range(10):
+        det.update(0.0, np.zeros(3))  # standing still: the same view again, no new evidence
+    assert det.score == score
+    for _ in range(5):
+        det.update(5.0, STEP)
+    assert not det.lost
+    det.reset()
+    assert det.score == 0.0 and det.hit_rate == 0.5
+
+
+def test_nothing_is_learnt_from_views_without_information() -> None:
+    """A hit rate at chance level (a wrong belief, or views that match nothing) gives no
+    evidence either way: misses then add nothing."""
+    det = LostDetector(chance_hit_rate=0.05)
+    _learn(det, 0.0, n=400)
+    assert det.hit_rate < 0.05
+    score = det.score  # (the first misses, while rho was still the prior's 1/2, count a little)
+    for _ in range(50):
+        det.update(0.0, STEP)
+    assert det.score == score and not det.lost
+
+
+def test_a_new_belief_must_be_confirmed_and_keeps_the_learnt_reliability() -> None:
+    det = LostDetector(confirm_views=1.0)
+    _learn(det, 0.9)
+    rho = det.hit_rate
+    assert det.confirmed
+    det.new_belief()  # converged again: evidence and confirmation restart, rho stays
+    assert not det.confirmed and det.score == 0.0 and det.hit_rate == rho
+    det.update(0.0, STEP, learn=False)  # a search teaches rho nothing
+    assert not det.confirmed and det.hit_rate == rho
+    det.update(3.0, STEP, learn=False)  # one view's worth of hits confirms the belief
+    assert det.confirmed and det.hit_rate == rho
+    det.reset()
+    assert not det.confirmed and det.hit_rate == 0.5
+    det.confirm()  # a pose given by the user
+    assert det.confirmed
