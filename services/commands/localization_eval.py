@@ -50,7 +50,7 @@ def _global(args: argparse.Namespace) -> int:
         raise LinoLocError("--starts and --updates must be at least 1")
     setup = GlobalSetup(world=args.world, features=args.features, preprocess=args.preprocess,
                         starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
-                        j=args.j, seed=args.seed, workers=args.workers)
+                        j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings)
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), progress=cb)  # type: ignore[arg-type]
     bar.close()
@@ -143,6 +143,9 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preprocess", default="none", choices=PREPROCESS_METHODS)
     p.add_argument("--particles", type=int, default=None, help="default: the localizer configuration's")
     p.add_argument("--j", type=int, default=None, help="nearest map entries J (default: configuration's)")
+    p.add_argument("--virtual-headings", type=int, default=5, choices=range(1, 32), metavar="N",
+                   help="map entries per survey image, turned 3 deg apart (lino_loc.virtual_views), as "
+                   "config/sim.toml's map; 1: the images alone (default 5)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")

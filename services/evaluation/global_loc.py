@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.world import load_world
+from drivers.sim.world import grid_poses, load_world
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import heading_errors, position_errors, success, success_pose
 from services.evaluation.drive import DriveConfig, plan_drive
@@ -59,6 +59,8 @@ class GlobalSetup:
     size: tuple[int, int] = (80, 60)
     seed: int = 0
     workers: int | None = None
+    virtual_headings: int = 5  # as config/sim.toml's map (lino_loc.virtual_views); 1: images alone
+    virtual_step_deg: float = 3.0
 
 
 def localizer_config(setup: Any, base: LocalizerConfig | None) -> LocalizerConfig:
@@ -80,14 +82,19 @@ def run(
     """Run the evaluation; ``appearance_map`` overrides the rendered survey map (tests)."""
     world = load_world(setup.world)
     cfg = localizer_config(setup, config)
+    given = appearance_map is not None
     if appearance_map is None:
         appearance_map = build_sim_maps(
             setup.world, setup.step, setup.heading_step_deg, setup.features, (setup.preprocess,),
             lighting=setup.lighting, width=setup.width, height=setup.height, size=setup.size,
             seed=setup.seed, workers=setup.workers,
             progress=(lambda d, n: progress("map", d, n)) if progress else None,
+            virtual_headings=setup.virtual_headings, virtual_step_deg=setup.virtual_step_deg,
         )[setup.preprocess]
-    map_poses = np.asarray(appearance_map.poses, dtype=np.float64)
+    entries = np.asarray(appearance_map.poses, dtype=np.float64)
+    # the success criteria's training points: the survey grid (the map's entries may add
+    # virtual headings to it)
+    map_poses = entries if given else grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
     drive_cfg = DriveConfig(duration=max(setup.updates - 1, 1) / setup.rate, camera_rate=setup.rate)
     plans = [plan_drive(world, drive_cfg, seed=setup.seed * 100_003 + 1 + s) for s in range(setup.starts)]
     poses = np.concatenate([p.truth[: setup.updates] for p in plans])
@@ -125,7 +132,8 @@ def run(
         "starts": int(setup.starts),
         "updates": int(n_up),
         "rate_hz": float(setup.rate),
-        "map_entries": int(map_poses.shape[0]),
+        "map_images": int(map_poses.shape[0]),
+        "map_entries": int(entries.shape[0]),
         "map_step_m": float(setup.step),
         "map_heading_step_deg": float(setup.heading_step_deg),
         "features": int(np.asarray(appearance_map.channels["intensity"].features).shape[1]),
