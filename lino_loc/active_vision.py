@@ -41,8 +41,9 @@ product gives the likelihood of every predicted observation at every particle, a
 k-d tree over the same embedding.
 
 The policy (:class:`ActivePolicy`) decides WHEN to look (belief not converged: the filter
-state is ``global`` or ``lost``, or the belief entropy is above ``trigger_entropy``, or the last
-observation fits the map badly: predictive log-likelihood below ``min_log_likelihood``),
+state is ``global`` or ``lost``, or the belief entropy is above ``trigger_entropy``; or the
+observations fit the map badly: the lost detector's evidence has reached ``trigger_doubt`` of
+its threshold, or the last predictive log-likelihood is below ``min_log_likelihood``),
 WHEN to stop (converged, or no action lowers the expected entropy by ``min_entropy_gain``),
 turns the head back to ``home_pan`` (ahead) once converged, waits for the head to settle and for a frame taken after it settled, and never commands a
 pan outside the intersection of its own range and the head's limits. It is pure logic: the
@@ -101,6 +102,12 @@ class ActiveVisionConfig(BaseModel):
         None,
         description="nats; also look while the belief entropy (over cells) is above this "
         "(unset: only the filter state and the observation fit decide)",
+    )
+    trigger_doubt: float | None = Field(
+        0.5,
+        ge=0.0,
+        description="look when the evidence that the views no longer fit the belief reaches this "
+        "fraction of the lost threshold (lino_loc.lost_detection; 1 = lost); unset: not used",
     )
     min_log_likelihood: float | None = Field(
         None,
@@ -541,9 +548,11 @@ class ActivePolicy:
         u = np.clip(self.config.actions(), self.pan_lo, self.pan_hi)
         return np.unique(u)
 
-    def needs_look(self, state: str, belief_h: float, log_likelihood: float) -> bool:
+    def needs_look(self, state: str, belief_h: float, log_likelihood: float, doubt: float = 0.0) -> bool:
         c = self.config
         if state in ("global", "lost"):
+            return True
+        if c.trigger_doubt is not None and doubt >= c.trigger_doubt:
             return True
         if c.trigger_entropy is not None and belief_h > c.trigger_entropy:
             return True
@@ -565,6 +574,7 @@ class ActivePolicy:
         now: float,
         frame_stamp: float | None = None,
         rng: np.random.Generator | None = None,
+        doubt: float = 0.0,
     ) -> Decision:
         """The next pan command or None (with the reason).
 
@@ -572,7 +582,8 @@ class ActivePolicy:
         time of that reading (s); ``frame_stamp``: time of the last frame the filter used (the
         policy waits for a frame taken ``settle_s`` after the head stopped); ``state``/
         ``log_likelihood``: the filter's state and the last observation's predictive
-        log-likelihood."""
+        log-likelihood; ``doubt``: the estimate's evidence that the views no longer fit the
+        belief (``Estimate.doubt``, 1 = lost)."""
         c = self.config
         if not c.enabled:
             return Decision(None, "disabled")
@@ -594,7 +605,7 @@ class ActivePolicy:
         p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
         lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
         h_b = belief_entropy(p, lw, c.entropy_cell_xy, c.entropy_cell_theta)
-        if not self.needs_look(state, h_b, log_likelihood):
+        if not self.needs_look(state, h_b, log_likelihood, doubt):
             home = None if c.home_pan is None else self.clamp(c.home_pan)
             if home is not None and math.isfinite(pan) and abs(float(pan) - home) > c.pan_tolerance:
                 self.last_command_time = now

@@ -84,6 +84,7 @@ class Estimate:
     state: State
     likelihood: float  # predictive log-likelihood of the last observation (nan: none)
     cluster_weight: float = math.nan
+    doubt: float = 0.0  # evidence that the views no longer fit the belief, 1 = lost (lino_loc.lost_detection)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (lists instead of arrays; nan likelihood becomes None)."""
@@ -96,6 +97,7 @@ class Estimate:
             "state": self.state,
             "likelihood": None if not math.isfinite(self.likelihood) else float(self.likelihood),
             "cluster_weight": float(self.cluster_weight),
+            "doubt": float(self.doubt),
         }
 
 
@@ -207,6 +209,7 @@ class Localizer:
             state=e.state,
             likelihood=e.log_likelihood,
             cluster_weight=e.cluster_weight,
+            doubt=float(self.filter.lost_detector.doubt),
         )
 
     def set_pose(self, mean: ArrayLike, cov: ArrayLike) -> None:

@@ -121,6 +121,13 @@ class LostDetector:
     def lost(self) -> bool:
         return self.score > self.threshold
 
+    @property
+    def doubt(self) -> float:
+        """Evidence against the belief as a fraction of the threshold: 0 = the views agree,
+        1 = lost. Active vision looks once it passes ``trigger_doubt`` (the observations fit
+        the map badly), before the belief is declared lost."""
+        return self.score / self.threshold
+
     def update(self, excess: float, delta: ArrayLike, learn: bool = True) -> bool:
         """One observation: ``excess`` = predictive log-likelihood minus the outlier floor
         (nats; -inf or nan: a miss), ``delta`` the odometry increment (dx, dy, dtheta) since

@@ -526,6 +526,7 @@ class Daemon:
                 moving=state.moving,
                 now=time.time(),
                 frame_stamp=stamp,
+                doubt=est.doubt,
             )
         except Exception as exc:  # noqa: BLE001 - active vision must not stop localization
             log.warning("active vision failed: %s: %s", type(exc).__name__, exc)

@@ -228,6 +228,17 @@ def test_policy_stop_rules(model: NearestNeighbourSensorModel) -> None:
     d = make_policy(model, home_pan=3.0).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=0.0,
                                                 moving=False, now=5.0)
     assert d.reason == "home" and d.command is not None and d.command <= 2.6 + 1e-12
+    # tracking, but the views have stopped fitting the belief (lost detector's evidence at 60 %
+    # of its threshold): look before it is declared lost; at 20 % not yet
+    d = make_policy(model).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=0.0, moving=False,
+                                  now=5.0, doubt=0.6)
+    assert d.values is not None and d.reason in ("move", "no gain", "stay")
+    d = make_policy(model).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=0.0, moving=False,
+                                  now=5.0, doubt=0.2)
+    assert d.reason == "converged"
+    d = make_policy(model, trigger_doubt=None).decide(conv, lw, state="tracking", log_likelihood=-1.0, pan=0.0,
+                                                      moving=False, now=5.0, doubt=0.9)
+    assert d.reason == "converged"
     # tracking but the image fits the map badly: look again
     pol = make_policy(model, min_log_likelihood=-8.0)
     d = pol.decide(conv, lw, state="tracking", log_likelihood=-20.0, pan=0.0, moving=False, now=5.0)

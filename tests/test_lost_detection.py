@@ -82,3 +82,15 @@ def test_a_new_belief_must_be_confirmed_and_keeps_the_learnt_reliability() -> No
     assert not det.confirmed and det.hit_rate == 0.5
     det.confirm()  # a pose given by the user
     assert det.confirmed
+
+
+def test_doubt_grows_with_the_evidence_and_reaches_one_when_lost() -> None:
+    det = LostDetector()
+    _learn(det, 0.95)
+    assert det.doubt == 0.0
+    seen = []
+    while not det.lost:
+        det.update(0.0, STEP)
+        seen.append(det.doubt)
+    assert all(b > a for a, b in zip(seen, seen[1:], strict=False))  # each miss adds evidence
+    assert seen[-2] < 1.0 < seen[-1] and det.doubt == det.score / det.threshold
