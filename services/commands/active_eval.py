@@ -64,7 +64,7 @@ def _run(args: argparse.Namespace) -> int:
                         step=args.step, heading_step_deg=args.heading_step, eval_particles=args.eval_particles,
                         predicted_neighbours=args.predicted, inject=args.inject,
                         ideal=args.ideal, virtual_headings=args.virtual_headings,
-                        virtual_step_deg=args.virtual_step,
+                        virtual_step_deg=args.virtual_step, preprocess=args.preprocess,
                         filter={"global_proposal_fraction": args.global_proposal},
                         motion={"min_sigma_xy": args.floor_xy, "min_sigma_theta": math.radians(args.floor_theta)})
     bar = Progress("active")
@@ -113,6 +113,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    "1 = the paper's plain map (default 5)")
     p.add_argument("--virtual-step", type=float, default=3.0, help="degrees between virtual headings (default 3)")
     p.add_argument("--features", type=int, default=5)
+    p.add_argument("--preprocess", choices=("none", "histeq", "gradient"), default="none",
+                   help="image preprocessing before PCA (default none: section 6.1 names none)")
     p.add_argument("--j", type=int, default=10, help="nearest neighbours of the sensor model")
     p.add_argument("--scene-changes", default="",
                    help="also run with these scene changes of the world (comma-separated, or 'all')")
