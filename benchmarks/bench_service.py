@@ -72,7 +72,7 @@ def _mem_mb(pid: int) -> tuple[float, float]:
 
 def _config(args: argparse.Namespace, tmp: Path, pub: str, rep: str) -> str:
     map_path = Path(args.map_cache).expanduser() / (
-        f"office-tube-75cm-15deg-5f-{args.width}x{args.height}.npz"
+        f"office-tube-75cm-15deg-5f-v{args.virtual_headings}-{args.width}x{args.height}.npz"
     )
     return f"""
 [devices.camera]
@@ -98,6 +98,7 @@ heading_step_deg = 15.0
 width = {args.width}
 height = {args.height}
 features = 5
+virtual_headings = {args.virtual_headings}
 [localizer.filter]
 n_particles = {args.particles}
 [active_vision]
@@ -225,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--particles", type=int, default=1000)
     p.add_argument("--no-active-vision", dest="active_vision", action="store_false")
     p.add_argument("--map-cache", default="~/.cache/lino-loc/maps", help="folder of the cached maps")
+    p.add_argument("--virtual-headings", type=int, default=5,
+                   help="map entries per survey image, as config/sim.toml (default %(default)s; 1: images alone)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
     args = p.parse_args(argv)
     runs = [one_run(args) for _ in range(args.repeat)]
