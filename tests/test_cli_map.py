@@ -70,6 +70,7 @@ def test_build_with_virtual_headings(dataset: Path, tmp_path: Path, capsys: pyte
     assert summary["images"] == 12 and summary["entries"] == 36
     code, out, _ = _run(capsys, "map", "info", str(out_map))
     assert code == 0 and "every image also turned by -4,0,4 deg" in out
+    assert "entries    36 (12 images x 3 headings)" in out
     # a turn that leaves the field of view is refused in one line
     code, _, err = _run(capsys, "map", "build", str(dataset), "--out", str(tmp_path / "w.npz"),
                         "--size", "24x18", "--virtual-headings", "3", "--virtual-step", "40")

@@ -99,6 +99,15 @@ def _build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _entries(info: dict) -> str:
+    """``images N,`` or, for a map with virtual headings, ``entries N (M images x V headings),``."""
+    virt = info["channels"].get("intensity", {}).get("params", {}).get("virtual_offsets_deg")
+    if not virt:
+        return f"images     {info['n_images']},"
+    v = len(str(virt).split(","))
+    return f"entries    {info['n_images']} ({info['n_images'] // v} images x {v} headings),"
+
+
 def _info(args: argparse.Namespace) -> int:
     info = AppearanceMap.load(args.map).info()
     if args.json:
@@ -109,7 +118,7 @@ def _info(args: argparse.Namespace) -> int:
         f"map        {info['file']}",
         f"format     lino-loc-map v{info['format_version']} (lino-loc {info['lino_loc_version']}), created {info['created']}",
         f"dataset    {info['name']} ({info['source']})" + (f", condition {info['condition']}" if info["condition"] else ""),
-        f"images     {info['n_images']}, x {info['extent']['x'][0]:.2f}..{info['extent']['x'][1]:.2f} m, "
+        f"{_entries(info):<11}x {info['extent']['x'][0]:.2f}..{info['extent']['x'][1]:.2f} m, "
         f"y {info['extent']['y'][0]:.2f}..{info['extent']['y'][1]:.2f} m",
         f"camera     {cam['width']}x{cam['height']} fx {cam['fx']:.1f} fy {cam['fy']:.1f}"
         + (f" baseline {cam['baseline_m']} m" if cam.get("baseline_m") else ""),
