@@ -118,7 +118,7 @@ def _info(args: argparse.Namespace) -> int:
         f"map        {info['file']}",
         f"format     lino-loc-map v{info['format_version']} (lino-loc {info['lino_loc_version']}), created {info['created']}",
         f"dataset    {info['name']} ({info['source']})" + (f", condition {info['condition']}" if info["condition"] else ""),
-        f"{_entries(info):<11}x {info['extent']['x'][0]:.2f}..{info['extent']['x'][1]:.2f} m, "
+        f"{_entries(info)} x {info['extent']['x'][0]:.2f}..{info['extent']['x'][1]:.2f} m, "
         f"y {info['extent']['y'][0]:.2f}..{info['extent']['y'][1]:.2f} m",
         f"camera     {cam['width']}x{cam['height']} fx {cam['fx']:.1f} fy {cam['fy']:.1f}"
         + (f" baseline {cam['baseline_m']} m" if cam.get("baseline_m") else ""),
