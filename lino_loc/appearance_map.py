@@ -74,13 +74,7 @@ from lino_loc.dataset import CameraInfo, Dataset
 from lino_loc.errors import LinoLocError
 from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, fit_pca
 from lino_loc.preprocessing import PREPROCESS_METHODS, Preprocess, preprocess, to_vector
-from lino_loc.virtual_views import (
-    augment_poses,
-    augment_vectors,
-    crop_columns,
-    margin_columns,
-    scaled_intrinsics,
-)
+from lino_loc.virtual_views import VirtualHeadings, augment_poses, augment_vectors, crop_columns
 
 log = logging.getLogger(__name__)
 
@@ -584,21 +578,13 @@ project_rows = _project_rows  # public name (services.evaluation.views uses the 
 
 def virtual_setup(
     camera: CameraInfo, size: tuple[int, int], offsets: Sequence[float] | None
-) -> tuple[np.ndarray, list[float], int] | None:
-    """(K at the working size, heading offsets in radians, cropped margin) for a map with
-    virtual headings (:mod:`lino_loc.virtual_views`), or None for the plain map."""
+) -> VirtualHeadings | None:
+    """The virtual headings (:mod:`lino_loc.virtual_views`) of a map of ``camera`` at the
+    working ``size``, or None for the plain map (no offsets, or only 0)."""
     if offsets is None or len(offsets) == 0 or (len(offsets) == 1 and float(offsets[0]) == 0.0):
         return None
-    K = scaled_intrinsics(camera.fx, camera.fy, camera.cx, camera.cy, (camera.width, camera.height), size)
-    d = [float(x) for x in offsets]
-    return K, d, margin_columns(K, int(size[0]), max(abs(x) for x in d))
-
-
-def _virtual_params(virtual: tuple[np.ndarray, list[float], int] | None) -> dict[str, ParamValue]:
-    if virtual is None:
-        return {}
-    _, d, margin = virtual
-    return {"margin": margin, "virtual_offsets_deg": ",".join(f"{np.degrees(x):.6g}" for x in d)}
+    return VirtualHeadings.for_camera(camera.fx, camera.fy, camera.cx, camera.cy, (camera.width, camera.height),
+                                      size, offsets)
 
 
 def intensity_channel_from_vectors(
@@ -607,7 +593,7 @@ def intensity_channel_from_vectors(
     size: tuple[int, int],
     n_features: int,
     *,
-    virtual: tuple[np.ndarray, list[float], int] | None = None,
+    virtual: VirtualHeadings | None = None,
     method: PcaMethod = "randomized",
     seed: int = 0,
 ) -> ChannelMap:
@@ -616,8 +602,7 @@ def intensity_channel_from_vectors(
     image-major, poses by :func:`lino_loc.virtual_views.augment_poses`); then PCA (eq. 1) and
     the features of every row."""
     if virtual is not None:
-        K, d, margin = virtual
-        X = augment_vectors(X, size, K, d, margin)
+        X = augment_vectors(X, size, virtual.K, virtual.offsets, virtual.margin)
     pca = fit_pca(X, n_features, method=method, seed=seed)
     Y, total = _project_rows(pca, X)
     return ChannelMap(
@@ -627,7 +612,7 @@ def intensity_channel_from_vectors(
         pca=pca,
         features=Y,
         method=method,
-        params={"total_variance": total, "seed": seed, **_virtual_params(virtual)},
+        params={"total_variance": total, "seed": seed, **(virtual.params() if virtual else {})},
     )
 
 
@@ -641,7 +626,7 @@ def build_intensity_channel(
     method: PcaMethod = "randomized",
     seed: int = 0,
     workers: int | None = None,
-    virtual: tuple[np.ndarray, list[float], int] | None = None,
+    virtual: VirtualHeadings | None = None,
 ) -> ChannelMap:
     """The intensity channel: preprocess, area-average, PCA (eq. 1), features of every image
     (of every virtual view with ``virtual``)."""
@@ -658,7 +643,7 @@ def build_disparity_channel(
     min_valid_fraction: float = 0.25,
     seed: int = 0,
     max_iter: int = 100,
-    virtual: tuple[np.ndarray, list[float], int] | None = None,
+    virtual: VirtualHeadings | None = None,
 ) -> ChannelMap:
     """The disparity channel (section 5): sparse disparity per image (from ``disparity``, or
     from ``depth`` by f*B/Z, or inverse depth without a baseline), NaN-aware area-average,
@@ -691,8 +676,7 @@ def build_disparity_channel(
         if progress and ((i + 1) % 64 == 0 or i + 1 == n):
             progress(i + 1, n)
     if virtual is not None:
-        K, d, margin = virtual
-        X = augment_vectors(X, (w, h), K, d, margin, disparity=True)
+        X = augment_vectors(X, (w, h), virtual.K, virtual.offsets, virtual.margin, disparity=True)
     model = fit_pca_missing(X, n_features, seed=seed, max_iter=max_iter, dtype=np.float32)
     Y = np.asarray(model.project(X), dtype=np.float32)
     return ChannelMap(
@@ -707,7 +691,7 @@ def build_disparity_channel(
             "units": units,
             "seed": seed,
             "valid_fraction": float(np.isfinite(X).mean()),
-            **_virtual_params(virtual),
+            **(virtual.params() if virtual else {}),
         },
     )
 
@@ -767,7 +751,7 @@ def build_map(
     if "disparity" in channels:
         chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed, virtual=virtual)
     return AppearanceMap(
-        poses=ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual[1]),
+        poses=ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual.offsets),
         channels=chans,
         camera=ds.meta.camera,
         source=ds.meta.source or str(ds.root),

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -40,6 +41,31 @@ from numpy.typing import NDArray
 from lino_loc.errors import LinoLocError
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class VirtualHeadings:
+    """How a map's images are turned: ``K`` (3, 3) at the working size, the heading
+    ``offsets`` (radians) and the ``margin`` columns cropped each side of every vector."""
+
+    K: FloatArray
+    offsets: tuple[float, ...]
+    margin: int
+
+    @classmethod
+    def for_camera(
+        cls, fx: float, fy: float, cx: float, cy: float, camera_size: tuple[int, int], size: tuple[int, int],
+        offsets: Sequence[float],
+    ) -> VirtualHeadings:
+        K = scaled_intrinsics(fx, fy, cx, cy, camera_size, size)
+        d = tuple(float(x) for x in offsets)
+        if not d:
+            raise LinoLocError("virtual headings: no offsets given")
+        return cls(K, d, margin_columns(K, int(size[0]), max(abs(x) for x in d)))
+
+    def params(self) -> dict[str, int | str]:
+        """What a map header keeps: ``margin`` and ``virtual_offsets_deg`` ("-6,-3,0,3,6")."""
+        return {"margin": self.margin, "virtual_offsets_deg": ",".join(f"{math.degrees(x):.6g}" for x in self.offsets)}
 
 
 def scaled_intrinsics(

@@ -53,7 +53,7 @@ from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
-from lino_loc.virtual_views import augment_poses, crop_columns, offsets
+from lino_loc.virtual_views import VirtualHeadings, augment_poses, crop_columns, offsets
 from services.evaluation.views import ViewSpec, render_vectors
 
 log = logging.getLogger(__name__)
@@ -149,7 +149,7 @@ def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> 
     raise RuntimeError("could not place the test positions")
 
 
-def virtual(setup: ActiveSetup) -> tuple[np.ndarray, list[float], int] | None:
+def virtual(setup: ActiveSetup) -> VirtualHeadings | None:
     """The map's virtual headings (lino_loc.virtual_views), None for the paper's plain map."""
     if setup.virtual_headings <= 1:
         return None
@@ -170,8 +170,8 @@ def render_map(
     v = virtual(setup)
     ch = intensity_channel_from_vectors(X, setup.preprocess, setup.size, setup.features,  # type: ignore[arg-type]
                                         virtual=v, seed=setup.seed)
-    poses = grid.copy() if v is None else augment_poses(grid, v[1])
-    return ch.pca, np.asarray(ch.features, dtype=np.float64), poses, 0 if v is None else v[2]
+    poses = grid.copy() if v is None else augment_poses(grid, v.offsets)
+    return ch.pca, np.asarray(ch.features, dtype=np.float64), poses, 0 if v is None else v.margin
 
 
 def render_tests(

@@ -233,7 +233,7 @@ def build_sim_maps(
     for pre in missing:
         ch = intensity_channel_from_vectors(vectors[pre], pre, size, features,  # type: ignore[arg-type]
                                             virtual=virtual, seed=seed)
-        map_poses = poses.copy() if virtual is None else augment_poses(poses, virtual[1])
+        map_poses = poses.copy() if virtual is None else augment_poses(poses, virtual.offsets)
         amap = AppearanceMap(poses=map_poses, channels={"intensity": ch}, camera=info,
                              source=f"sim:{w.name}", name=f"{w.name}-{lighting}", condition=lighting)
         if cache:
