@@ -572,6 +572,30 @@ def test_run_with_auto_devices_starts_its_simulator_and_stops_it(tmp_path: Path)
         raise AssertionError("the simulator outlived the daemon")
 
 
+def test_run_stops_with_status_1_when_its_simulator_dies(tmp_path: Path) -> None:
+    """`lino-loc run` with "auto" devices: the simulated robot is killed (-9); the daemon says
+    so in one line, shuts down cleanly and exits 1 (so that a supervisor restarts both)."""
+    pub, rep = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+    cfg = tmp_path / "auto.toml"
+    cfg.write_text(config_text(tmp_path, pub=pub, rep=rep, state=tmp_path / "state.json"))
+    log = tmp_path / "run.log"
+    stream = Stream(pub, None)
+    proc = start_daemon(cfg, log)
+    try:
+        stream.wait_for(lambda: len(stream.poses_since(0)) >= 3, 90, f"poses; log:\n{log.read_text()[-3000:]}")
+        sim_pid = int(log.read_text().split("simulator  pid ")[1].split(":")[0])
+        os.kill(sim_pid, signal.SIGKILL)
+        code = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            stop(proc)
+        stream.close()
+    text = log.read_text()
+    assert code == 1, text[-3000:]
+    assert "the simulated robot (lino-loc sim) exited with status -9: stopping" in text
+    assert "Traceback" not in text
+
+
 # --------------------------------------------------------------------------------------------
 # the launcher's pieces (no processes)
 # --------------------------------------------------------------------------------------------

@@ -10,7 +10,10 @@ Which robot:
 
 It prints where the poses are published and how to watch them (stderr), then serves until
 SIGTERM or SIGINT, which shut it down cleanly (threads stopped, pose saved, devices closed,
-the child simulator stopped) with exit status 0.
+the child simulator stopped) with exit status 0. If the child simulator dies, the simulated
+robot is gone (its emulated ports and camera with it): the daemon shuts down the same way and
+exits with status 1, saying so in one line, so that whoever started it (a shell, systemd's
+``Restart=``) starts both again.
 
 BLAS threads: the filter's products are small; threaded OpenBLAS/OpenMP made them ~10x slower
 on the 2-core robot computer. ``services.cli`` sets ``OPENBLAS_NUM_THREADS`` /
@@ -27,6 +30,8 @@ import logging
 import os
 import signal
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -161,14 +166,30 @@ def run_daemon(args: argparse.Namespace) -> int:
             signal.signal(s, on_signal)
         if stop_requested:
             daemon.request_stop()
+        sim_died = threading.Event()
+        if sim is not None:
+            threading.Thread(target=_watch_sim, args=(sim, daemon, sim_died), name="sim-watch", daemon=True).start()
         print(banner(cfg, reason, sim), file=sys.stderr, flush=True)
-        return daemon.run()
+        code = daemon.run()
+        return 1 if sim_died.is_set() else code
     finally:
         for s, h in old.items():
             signal.signal(s, h)
         if sim is not None:
             code = sim.stop()
             log.info("simulator stopped (status %s)", code)
+
+
+def _watch_sim(sim: Any, daemon: Any, died: threading.Event, period: float = 0.5) -> None:
+    """Stop the daemon when the child simulator exits on its own (not at our shutdown)."""
+    while not daemon.stopping:
+        if not sim.alive:
+            status = sim.proc.returncode if sim.proc is not None else None
+            log.error("the simulated robot (lino-loc sim) exited with status %s: stopping", status)
+            died.set()
+            daemon.request_stop()
+            return
+        time.sleep(period)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
