@@ -19,6 +19,11 @@ sample n with observed coordinates o (mask ``m_n``):
 - Parameter expansion (PX-EM): the latent mean and covariance are re-estimated from the
   E-step moments and folded back into mu and W, so the scale of W converges in a few
   iterations instead of hundreds.
+- Acceleration (SQUAREM, Varadhan & Roland 2008): the (PX-)EM map is extrapolated every
+  two steps, with a monotonicity safeguard. Same fixed points as EM. Needed on real sparse
+  disparity maps: with most pixels missing in blocks and a spectrum without a gap at d, EM
+  converges linearly with a rate close to 1 (the log-likelihood creeps along a flat ridge
+  where W's scale keeps growing), so plain EM runs into its iteration limit.
 
 Everything is vectorized: the N (d x d) matrices ``M_n = sum_j m_nj w_j w_j^T`` are one matrix
 product of the mask with the D x d(d+1)/2 table of products ``w_jk w_jl``; the D per-pixel
@@ -276,25 +281,103 @@ class MissingDataPCA:
         return self.mean + np.asarray(Y, dtype=np.float64) @ self.components
 
 
-def _init_subspace(Xc: F64, d: int, rng: np.random.Generator) -> tuple[F64, F64]:
+def _init_subspace(Xc: NDArray, d: int, rng: np.random.Generator) -> tuple[F64, F64]:
     """Leading d right singular vectors (D, d) and singular values of Xc (mean-imputed, centred).
 
-    Exact SVD for small problems, randomized range finder with power iterations otherwise.
+    Exact SVD for small problems, randomized range finder with power iterations otherwise
+    (Halko, Martinsson & Tropp 2011).
     """
     n, D = Xc.shape
     if min(n, D) <= 600:
         _, s, vt = np.linalg.svd(Xc, full_matrices=False)
-        return vt[:d].T, s[:d]
+        return vt[:d].T.astype(np.float64), s[:d].astype(np.float64)
     k = min(d + 15, min(n, D))
-    Q = Xc @ rng.standard_normal((D, k))
+    Q = Xc @ rng.standard_normal((D, k)).astype(Xc.dtype)
     for _ in range(4):
         Q, _ = np.linalg.qr(Q)
         Q, _ = np.linalg.qr(Xc.T @ Q)
         Q = Xc @ Q
     Q, _ = np.linalg.qr(Q)
     B = Q.T @ Xc  # (k, D)
-    _, s, vt = np.linalg.svd(B, full_matrices=False)
+    _, s, vt = np.linalg.svd(B.astype(np.float64), full_matrices=False)
     return vt[:d].T, s[:d]
+
+
+_SOLVE_BLOCK = 512  # pixels per batch of M-step solves (bounds the (D, d+1, d+1) temporaries)
+
+
+@dataclass
+class _EMData:
+    """The fixed arrays of one fit: data with 0 where missing, mask, per-row statistics."""
+
+    X0: NDArray
+    maskf: NDArray
+    rowcount: F64
+    xx_rows: F64
+    xsq_total: float
+    n_obs: float
+    seen: NDArray[np.bool_]
+    active: NDArray[np.bool_]
+    sigma2_floor: float
+    px_em: bool
+
+
+def _em_step(W: F64, mu: F64, sigma2: float, data: _EMData) -> tuple[F64, F64, float, float]:
+    """One EM (or PX-EM) iteration: the E-step at (W, mu, sigma2), then the M-step.
+
+    Returns the new (W, mu, sigma2) and the observed-data log-likelihood per observed value
+    at the *input* parameters.
+    """
+    X0, maskf = data.X0, data.maskf
+    n = X0.shape[0]
+    dt = X0.dtype
+    d = W.shape[1]
+    d1 = d + 1
+    iu1 = _triu(d1)
+    seen, active = data.seen, data.active
+    # ---- E-step
+    Ez, Minv, ll = _posterior(W, mu, sigma2, X0, maskf, data.rowcount, data.xx_rows)
+    ll_obs = float(ll.sum() / data.n_obs)
+    # ---- M-step for (w_j, mu_j) with z~ = (z, 1): E[z~ z~^T] per sample, packed
+    St = np.empty((n, d1, d1))
+    Minv *= sigma2
+    Minv += Ez[:, :, None] * Ez[:, None, :]  # E[z z^T] = sigma^2 M^-1 + E[z] E[z]^T
+    St[:, :d, :d] = Minv
+    St[:, :d, d] = Ez
+    St[:, d, :d] = Ez
+    St[:, d, d] = 1.0
+    del Minv
+    S_active = St[active, :d, :d].sum(0)  # for PX-EM
+    # sum_n m_nj E[z~ z~^T]_n for all pixels j: (D, P1) packed, one product with the mask
+    A_packed = maskf.T @ _pack_sym(St, iu1).astype(dt, copy=False)
+    Zt = St[:, d, :]  # (N, d1) = (E[z], 1)
+    B = np.asarray(X0.T @ Zt.astype(dt, copy=False), dtype=np.float64)  # (D, d1)
+    B[~seen] = 0.0
+    theta = np.zeros((X0.shape[1], d1))
+    for lo in range(0, X0.shape[1], _SOLVE_BLOCK):  # (d1 x d1) systems, by blocks of pixels
+        sl = slice(lo, lo + _SOLVE_BLOCK)
+        A = _unpack_sym(np.asarray(A_packed[sl], dtype=np.float64), d1, iu1)
+        A[~seen[sl]] = np.eye(d1)
+        theta[sl] = np.linalg.solve(A, B[sl, :, None])[:, :, 0]
+    del A_packed, St
+    W_new = theta[:, :d]
+    mu_new = theta[:, d].copy()
+    sse = data.xsq_total - float(np.einsum("ji,ji->", theta, B))
+    sigma2_new = max(sse / data.n_obs, data.sigma2_floor)
+    n_active = int(active.sum())
+    if data.px_em and n_active > 0:
+        # PX-EM (Liu, Rubin & Wu 1998): estimate the latent mean m and covariance C in the
+        # expanded model z ~ N(m, C), then map back to z ~ N(0, I): mu += W m, W <- W C^1/2.
+        # Any square root of C gives the same model; the symmetric one turns the latent
+        # coordinates the least, so successive iterates of W differ only by what changes
+        # the model (which the SQUAREM extrapolation relies on).
+        m_z = Ez[active].sum(0) / n_active
+        C = S_active / n_active - np.outer(m_z, m_z)
+        evals, evecs = np.linalg.eigh(C)
+        if evals[0] > 0:
+            mu_new = mu_new + W_new @ m_z
+            W_new = W_new @ ((evecs * np.sqrt(evals)) @ evecs.T)
+    return np.ascontiguousarray(W_new), mu_new, sigma2_new, ll_obs
 
 
 def fit_pca_missing(
@@ -308,22 +391,35 @@ def fit_pca_missing(
     min_sigma2: float = 1e-9,
     dtype: type = np.float64,
     px_em: bool = True,
+    accelerate: bool = True,
 ) -> MissingDataPCA:
     """Fit probabilistic PCA to (N, D) data with NaN for missing values, by EM.
 
     Initialised from plain PCA of the mean-imputed data. Stops when the relative change of
-    the observed-data log-likelihood (per observed value) falls below ``tol``; or when one
-    iteration turns the principal subspace by less than ``subspace_tol`` radians (largest
-    principal angle between span(W) before and after) while W's singular values and sigma^2
-    change by less than ``10 * subspace_tol`` (relative); or after ``max_iter`` iterations
-    (then ``converged`` is False). ``min_sigma2`` is a floor on sigma^2 relative to the
-    data's mean observed variance (keeps noiseless data well posed; at least 1e-6 with
-    float32). ``dtype`` is the precision of the large (N x D) matrix products: float64
-    (default) or float32 (faster, half the memory). ``px_em`` (default on) adds the parameter-expanded M-step (latent mean
+    the observed-data log-likelihood (per observed value) over one EM iteration falls below
+    ``tol``; or when one iteration turns the principal subspace by less than
+    ``subspace_tol`` radians (largest principal angle between span(W) before and after)
+    while W's singular values and sigma^2 change by less than ``10 * subspace_tol``
+    (relative); or after ``max_iter`` iterations (E-steps; then ``converged`` is False).
+    ``min_sigma2`` is a floor on sigma^2 relative to the data's mean observed variance
+    (keeps noiseless data well posed; at least 1e-6 with float32). ``dtype`` is the
+    precision of the large (N x D) matrix products: float64 (default) or float32 (faster,
+    half the memory). ``px_em`` (default on) adds the parameter-expanded M-step (latent mean
     and covariance estimated, then folded back into mu and W; Liu, Rubin & Wu 1998), which
     removes plain EM's very slow convergence of the scale of W when values are missing.
-    Deterministic for a given ``seed`` (used only by the randomized initial SVD of large
-    problems).
+
+    ``accelerate`` (default on) wraps the (PX-)EM map in SQUAREM (Varadhan & Roland 2008,
+    scheme S3 with the adaptive step bound and monotonicity safeguard of their reference
+    implementation): every two EM steps, the parameters are extrapolated along the EM
+    direction and one EM step is taken from there; the extrapolation is kept only if its
+    log-likelihood is not below that of the second EM step's starting point, otherwise the
+    plain EM iterate is used. The fixed points (the ML estimate) are those of EM, and the
+    recorded log-likelihood stays non-decreasing (up to rounding); with much of the data
+    missing in blocks (disparity maps) EM converges linearly with a rate close to 1 and
+    SQUAREM reaches a given log-likelihood in several times fewer iterations (measured: 4x
+    on the block-missing test problem, 1.6x to the stopping rule on rendered lab disparity
+    maps). ``log_likelihood`` records the values at the accepted iterates. Deterministic for a given ``seed`` (used only by the randomized
+    initial SVD of large problems).
     """
     a = np.asarray(X)
     if a.ndim != 2:
@@ -343,30 +439,41 @@ def fit_pca_missing(
     if colcount.sum() == 0:
         raise LinoLocError("PCA data has no valid value at all")
     seen = colcount > 0
-    X0 = np.where(mask_b, a, 0.0).astype(dtype, copy=False)  # (N, D), 0 where missing
+    # (N, D) copy in the working precision, centred by the observed per-pixel means, 0 where
+    # missing (in place: no N x D temporaries). The fit runs on the centred data and adds
+    # the means back at the end: the same model (mu is a free parameter), but the sums of
+    # squares of the log-likelihood no longer cancel large terms, so it stays accurate to
+    # ~1e-7 even with float32 products (the convergence test and SQUAREM compare it).
+    X0 = np.array(a, dtype=dtype, copy=True)
     del a
-    mu = np.divide(X0.sum(0, dtype=np.float64), colcount, out=np.zeros(D), where=seen)
+    np.copyto(X0, 0.0, where=~mask_b)
+    maskf = mask_b.astype(dtype)
+    del mask_b
+    mu0 = np.divide(X0.sum(0, dtype=np.float64), colcount, out=np.zeros(D), where=seen)
+    X0 -= mu0.astype(dtype)
+    X0 *= maskf
+    mu = np.zeros(D)
     n_obs = float(colcount.sum())
+    rowcount = np.asarray(maskf.sum(1, dtype=np.float64))
+    xx_rows = np.einsum("nj,nj->n", X0, X0, dtype=np.float64)  # (N,) sum_j m (x - mu0)^2
 
-    # --- initialisation: plain PCA of the mean-imputed data (missing = mean)
-    Xc = X0 - mu.astype(dtype)
-    Xc[~mask_b] = 0.0
-    total_var = float(np.einsum("nj,nj->", Xc, Xc, dtype=np.float64) / n_obs)
+    # --- initialisation: plain PCA of the mean-imputed data (missing = mean): X0 itself
+    total_var = float(xx_rows.sum() / n_obs)
     # float32 products carry ~1e-7 relative error: keep M_n = W_o^T W_o + sigma^2 I well
     # inside positive definiteness with a larger floor in that precision.
     floor_rel = max(min_sigma2, 1e-6) if dtype == np.float32 else min_sigma2
     sigma2_floor = max(floor_rel * total_var, 1e-300)
-    V, s = _init_subspace(Xc, d, rng)
+    V, s = _init_subspace(X0, d, rng)
     # ML (1/N) variances: complete data start at the PPCA solution
     lam = s.astype(np.float64) ** 2 / n
     sse = 0.0
-    Vt = V.T.astype(dtype)
+    Vd = V.astype(dtype)
     for lo in range(0, n, 512):  # residual of the rank-d fit on observed values, by row blocks
-        blk = Xc[lo : lo + 512]
-        r = blk - (blk @ V.astype(dtype)) @ Vt
-        r[~mask_b[lo : lo + 512]] = 0.0
+        blk = X0[lo : lo + 512]
+        r = blk - (blk @ Vd) @ Vd.T
+        r *= maskf[lo : lo + 512]
         sse += float(np.einsum("nj,nj->", r, r, dtype=np.float64))
-    del Xc, blk, r  # (blk is a view: it would keep Xc's buffer alive)
+        del blk, r
     sigma2 = max(sse / n_obs, sigma2_floor)
     W = (
         V.astype(np.float64)
@@ -374,85 +481,26 @@ def fit_pca_missing(
     )
     W[~seen] = 0.0
 
-    maskf = mask_b.astype(dtype)
-    del mask_b
-    rowcount = np.asarray(maskf.sum(1, dtype=np.float64))
-    active = rowcount > 0
-    n_active = int(active.sum())
-    xx_rows = np.einsum("nj,nj->n", X0, X0, dtype=np.float64)  # (N,) sum_j m x^2
-    xsq_total = float(xx_rows.sum())
-    d1 = d + 1
-    iu1 = _triu(d1)
-
-    history: list[float] = []
-    converged = False
-    q_old, sv_old = _basis(W)
-    it = 0
-    for it in range(1, max_iter + 1):
-        # ---- E-step
-        Ez, Minv, ll = _posterior(W, mu, sigma2, X0, maskf, rowcount, xx_rows)
-        history.append(float(ll.sum() / n_obs))
-        # ---- M-step for (w_j, mu_j) with z~ = (z, 1)
-        S = sigma2 * Minv + np.einsum("ni,nj->nij", Ez, Ez)  # (N, d, d)
-        St = np.empty((n, d1, d1))
-        St[:, :d, :d] = S
-        St[:, :d, d] = Ez
-        St[:, d, :d] = Ez
-        St[:, d, d] = 1.0
-        A = _unpack_sym(
-            np.asarray(maskf.T @ _pack_sym(St, iu1).astype(dtype, copy=False), dtype=np.float64),
-            d1,
-            iu1,
-        )  # (D, d1, d1)
-        Zt = np.concatenate([Ez, np.ones((n, 1))], axis=1)
-        B = np.asarray(X0.T @ Zt.astype(dtype, copy=False), dtype=np.float64)  # (D, d1)
-        A[~seen] = np.eye(d1)
-        B[~seen] = 0.0
-        theta = np.linalg.solve(A, B[:, :, None])[:, :, 0]
-        W_new = theta[:, :d]
-        mu_new = theta[:, d]
-        sse = xsq_total - float(np.einsum("ji,ji->", theta, B))
-        sigma2_new = max(sse / n_obs, sigma2_floor)
-        if px_em and n_active > 0:
-            # PX-EM (Liu, Rubin & Wu 1998): estimate the latent mean m and covariance C in the
-            # expanded model z ~ N(m, C), then map back to z ~ N(0, I): mu += W m, W <- W chol(C).
-            # Same fixed points, likelihood still non-decreasing; removes EM's slow drift of
-            # the scale of W at high signal-to-noise.
-            m_z = Ez[active].sum(0) / n_active
-            C = S[active].sum(0) / n_active - np.outer(m_z, m_z)
-            try:
-                Lc = np.linalg.cholesky(C)
-            except np.linalg.LinAlgError:
-                Lc = None
-            if Lc is not None:
-                mu_new = mu_new + W_new @ m_z
-                W_new = W_new @ Lc
-
-        q_new, sv_new = _basis(W_new)
-        dangle = _max_angle(q_old, q_new)
-        dscale = float(np.max(np.abs(sv_new - sv_old) / np.maximum(sv_new, 1e-300)))
-        s2_change = abs(sigma2_new - sigma2) / sigma2
-        q_old, sv_old = q_new, sv_new
-        W, mu = W_new, mu_new
-        sigma2 = sigma2_new
-        log.debug(
-            "EM-PCA iter %d ll/obs %.8g sigma2 %.4g dangle %.2e dscale %.2e",
-            it,
-            history[-1],
-            sigma2,
-            dangle,
-            dscale,
-        )
-        if len(history) >= 2:
-            rel = abs(history[-1] - history[-2]) / max(abs(history[-2]), 1e-12)
-            settled = dangle < subspace_tol and max(dscale, s2_change) < 10 * subspace_tol
-            if rel < tol or settled:
-                converged = True
-                break
+    data = _EMData(
+        X0=X0,
+        maskf=maskf,
+        rowcount=rowcount,
+        xx_rows=xx_rows,
+        xsq_total=float(xx_rows.sum()),
+        n_obs=n_obs,
+        seen=seen,
+        active=rowcount > 0,
+        sigma2_floor=sigma2_floor,
+        px_em=px_em,
+    )
+    W, mu, sigma2, history, it, converged = _run_em(
+        W, mu, sigma2, data, max_iter, tol, subspace_tol, accelerate
+    )
     if not converged:
         log.info("EM-PCA stopped after max_iter=%d iterations without reaching the tolerance", it)
 
     W[~seen] = 0.0
+    mu = mu + mu0
     mu[~seen] = 0.0
     # ---- orthonormal basis of span(W), ordered by variance (like plain PCA)
     U, sv, _ = np.linalg.svd(W, full_matrices=False)  # U (D, d)
@@ -474,6 +522,108 @@ def fit_pca_missing(
         n_iter=it,
         converged=converged,
     )
+
+
+_Params = tuple[F64, F64, float]
+
+
+def _run_em(
+    W: F64,
+    mu: F64,
+    sigma2: float,
+    data: _EMData,
+    max_iter: int,
+    tol: float,
+    subspace_tol: float,
+    accelerate: bool,
+) -> tuple[F64, F64, float, list[float], int, bool]:
+    """The EM iterations, optionally accelerated by SQUAREM (see :func:`fit_pca_missing`).
+
+    Returns (W, mu, sigma2, log-likelihood history, E-steps run, converged).
+    """
+    history: list[float] = []
+    it = 0
+
+    def step(p: _Params) -> tuple[_Params, float]:
+        nonlocal it
+        it += 1
+        W1, mu1, s1, ll = _em_step(p[0], p[1], p[2], data)
+        return (W1, mu1, s1), ll
+
+    def done(p: _Params, p_next: _Params, ll: float, ll_prev: float | None) -> bool:
+        """The stopping rule on one EM step p -> p_next (ll at p, ll_prev at the previous
+        recorded iterate; None: log only)."""
+        q_old, sv_old = _basis(p[0])
+        q_new, sv_new = _basis(p_next[0])
+        dangle = _max_angle(q_old, q_new)
+        dscale = float(np.max(np.abs(sv_new - sv_old) / np.maximum(sv_new, 1e-300)))
+        s2_change = abs(p_next[2] - p[2]) / p[2]
+        log.debug(
+            "EM-PCA iter %d ll/obs %.8g sigma2 %.4g dangle %.2e dscale %.2e",
+            it,
+            ll,
+            p_next[2],
+            dangle,
+            dscale,
+        )
+        if ll_prev is None:
+            return False
+        rel = abs(ll - ll_prev) / max(abs(ll_prev), 1e-12)
+        settled = dangle < subspace_tol and max(dscale, s2_change) < 10 * subspace_tol
+        return rel < tol or settled
+
+    def last() -> float | None:
+        return history[-1] if history else None
+
+    p: _Params = (W, mu, sigma2)
+    step_max = 1.0  # SQUAREM's adaptive bound on the step length (Varadhan & Roland 2008)
+    while it < max_iter:
+        p0 = p
+        p1, ll0 = step(p0)
+        stop = done(p0, p1, ll0, last())
+        history.append(ll0)
+        p = p1
+        if stop:
+            return (*p, history, it, True)
+        if not accelerate or it >= max_iter:
+            continue
+        p2, ll1 = step(p1)
+        stop = done(p1, p2, ll1, last())
+        history.append(ll1)
+        p = p2
+        if stop:
+            return (*p, history, it, True)
+        if it >= max_iter:
+            continue
+        # SQUAREM S3: r = F(p0) - p0, v = F(F(p0)) - 2 F(p0) + p0,
+        # p' = p0 + 2 a r + a^2 v with a = |r| / |v| in [1, step_max]
+        r = [p1[k] - p0[k] for k in range(3)]
+        v = [p2[k] - p1[k] - r[k] for k in range(3)]
+        sr2 = sum(float(np.vdot(x, x)) for x in r)
+        sv2 = sum(float(np.vdot(x, x)) for x in v)
+        if not sv2 > 0.0:
+            continue
+        alpha = min(max(math.sqrt(sr2 / sv2), 1.0), step_max)
+        if alpha <= 1.0:  # p' = p2: nothing to extrapolate
+            if alpha == step_max:
+                step_max *= 4.0
+            continue
+        pp: _Params = (
+            p0[0] + 2.0 * alpha * r[0] + alpha**2 * v[0],
+            p0[1] + 2.0 * alpha * r[1] + alpha**2 * v[1],
+            max(p0[2] + 2.0 * alpha * r[2] + alpha**2 * v[2], data.sigma2_floor),
+        )
+        p3, llp = step(pp)  # the stabilising EM step; its E-step gives ll(p')
+        if math.isfinite(llp) and llp >= ll1:
+            # (logged, not a convergence test: ll1 -> llp is an extrapolation, not an EM step)
+            done(pp, p3, llp, None)
+            history.append(llp)
+            p = p3
+            if alpha == step_max:
+                step_max *= 4.0
+        elif alpha == step_max:  # rejected: continue from the EM iterate p2
+            step_max = max(1.0, step_max / 4.0)
+    return (*p, history, it, False)
 
 
 def plain_pca(X: ArrayLike, n_components: int) -> tuple[F64, F64, F64]:
