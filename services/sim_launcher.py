@@ -272,11 +272,20 @@ def sidecar_path(map_path: Path) -> Path:
     return map_path.with_name(map_path.name + ".build.json")
 
 
+def _code_fingerprint() -> str:
+    """The code that renders the survey and builds the map (a cached map from other code is
+    rebuilt): :func:`services.evaluation.views.code_fingerprint`."""
+    from services.evaluation.views import code_fingerprint
+
+    return code_fingerprint()
+
+
 def _build_record(build: MapBuildConfig, world_fingerprint: str) -> dict[str, Any]:
     return {
         "version": SIDECAR_VERSION,
         "build": build.model_dump(mode="json"),
         "world_fingerprint": world_fingerprint,
+        "code_fingerprint": _code_fingerprint(),
     }
 
 

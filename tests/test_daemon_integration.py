@@ -624,7 +624,9 @@ def test_sim_info_parse_and_resolve_auto(tmp_path: Path) -> None:
     assert done.devices.head.driver_config().port == "/dev/pts/7"
 
 
-def test_sim_map_is_built_once_then_reused_and_rebuilt_when_settings_change(tmp_path: Path) -> None:
+def test_sim_map_is_built_once_then_reused_and_rebuilt_when_settings_change(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from services.config import load_config
     from services.sim_launcher import ensure_sim_map, sidecar_path
 
@@ -650,3 +652,9 @@ def test_sim_map_is_built_once_then_reused_and_rebuilt_when_settings_change(tmp_
     (tmp_path / "m.npz").write_bytes(b"PK\x03\x04 truncated")  # corrupt: rebuilt
     amap, built = ensure_sim_map(cfg(4))
     assert built and amap.channels["intensity"].n_features == 4
+    # other map-building code (a changed renderer, PCA, ...): the cached map is stale, rebuilt
+    with monkeypatch.context() as m:
+        m.setattr("services.sim_launcher._code_fingerprint", lambda: "0000dead")
+        assert ensure_sim_map(cfg(4))[1] is True
+        assert ensure_sim_map(cfg(4))[1] is False
+    assert ensure_sim_map(cfg(4))[1] is True

@@ -62,7 +62,13 @@ from lino_loc.poses import wrap_angle
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 from services.evaluation.tracking import DEFAULT_PREPROCESS
-from services.evaluation.views import ViewSpec, build_sim_maps, map_cache_dir, render_vectors
+from services.evaluation.views import (
+    ViewSpec,
+    build_sim_maps,
+    code_fingerprint,
+    map_cache_dir,
+    render_vectors,
+)
 
 log = logging.getLogger(__name__)
 
@@ -220,7 +226,8 @@ def _survey_key(setup: SensorModelSetup, world: World, what: str) -> str:
     w, h = int(setup.size[0]), int(setup.size[1])
     return (
         f"{world.name}-tube-{setup.step:g}m-{setup.heading_step_deg:g}deg-{what}-"
-        f"{_stereo_key(setup)}-{setup.width}x{setup.height}-{w}x{h}-s{setup.seed}-{world.fingerprint[:10]}.npz"
+        f"{_stereo_key(setup)}-{setup.width}x{setup.height}-{w}x{h}-s{setup.seed}-{world.fingerprint[:10]}"
+        f"-c{code_fingerprint()}.npz"
     )
 
 

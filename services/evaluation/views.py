@@ -167,6 +167,28 @@ def map_cache_dir() -> Path:
     return Path(root) / "maps"
 
 
+#: Modules whose code decides a rendered view and the map built from it: a cached view or map
+#: made by other code is stale (``code_fingerprint`` is part of every cache key).
+_CACHE_CODE = (
+    "drivers.sim.renderer", "drivers.sim.lighting", "drivers.sim.textures", "drivers.sim.world",
+    "lino_loc.preprocessing", "lino_loc.disparity", "lino_loc.pca", "lino_loc.pca_missing",
+    "lino_loc.virtual_views", "lino_loc.appearance_map",
+)
+
+
+def code_fingerprint() -> str:
+    """First 8 hex digits of the SHA-256 of the source of the modules in ``_CACHE_CODE``."""
+    import hashlib
+    import importlib
+
+    h = hashlib.sha256()
+    for name in _CACHE_CODE:
+        source = importlib.import_module(name).__file__
+        if source is not None:
+            h.update(Path(source).read_bytes())
+    return h.hexdigest()[:8]
+
+
 def build_sim_maps(
     world: str,
     step: float,
@@ -207,7 +229,7 @@ def build_sim_maps(
         f"{w.name}-{lighting}-{step:g}m-{heading_step_deg:g}deg-{features}f-{{pre}}-{width}x{height}-"
         f"{size[0]}x{size[1]}-s{seed}"
         + (f"-v{virtual_headings}x{virtual_step_deg:g}" if virtual_headings > 1 else "")
-        + f"-{w.fingerprint[:10]}.npz"
+        + f"-{w.fingerprint[:10]}-c{code_fingerprint()}.npz"
     )
     out: dict[str, AppearanceMap] = {}
     missing = []
