@@ -21,6 +21,7 @@ import bisect
 import json
 import math
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -53,10 +54,29 @@ def _env() -> dict[str, str]:
     return env
 
 
+_PORTS = random.Random(os.getpid())
+_PORTS_GIVEN: set[int] = set()
+_PORTS_LOCK = threading.Lock()
+
+
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A free TCP port BELOW the kernel's ephemeral range (32768-60999 here): a port the OS
+    handed out for port 0 and we released may be handed out again to the next process that
+    binds port 0 (the simulator's camera stream, ZeroMQ's own sockets) before the daemon
+    binds it - a race seen when several rigs start at once."""
+    with _PORTS_LOCK:  # rigs start from several threads: never hand out a port twice
+        for _ in range(200):
+            port = _PORTS.randrange(20000, 32000)
+            if port in _PORTS_GIVEN:
+                continue
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+            _PORTS_GIVEN.add(port)
+            return port
+    raise RuntimeError("no free TCP port in 20000-32000")
 
 
 def config_text(
