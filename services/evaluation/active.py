@@ -43,18 +43,16 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.renderer import CameraModel
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.active_vision import ActionEvaluator, ActiveVisionConfig, belief_entropy
-from lino_loc.appearance_map import intensity_channel_from_vectors, virtual_setup
-from lino_loc.dataset import CameraInfo
+from lino_loc.appearance_map import channel_margin
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
-from lino_loc.virtual_views import VirtualHeadings, augment_poses, crop_columns, offsets
-from services.evaluation.views import ViewSpec, render_vectors
+from lino_loc.virtual_views import crop_columns
+from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
 
 log = logging.getLogger(__name__)
 
@@ -149,29 +147,20 @@ def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> 
     raise RuntimeError("could not place the test positions")
 
 
-def virtual(setup: ActiveSetup) -> VirtualHeadings | None:
-    """The map's virtual headings (lino_loc.virtual_views), None for the paper's plain map."""
-    if setup.virtual_headings <= 1:
-        return None
-    fx, fy, cx, cy = CameraModel(width=setup.width, height=setup.height).intrinsics()
-    cam = CameraInfo(width=setup.width, height=setup.height, fx=fx, fy=fy, cx=cx, cy=cy)
-    return virtual_setup(cam, setup.size, offsets(math.radians(setup.virtual_step_deg), setup.virtual_headings))
-
-
 def render_map(
-    setup: ActiveSetup, grid: np.ndarray, progress: ProgressFn | None
+    setup: ActiveSetup, progress: ProgressFn | None
 ) -> tuple[Any, np.ndarray, np.ndarray, int]:
-    """PCA (eq. 1) of the grid views (and their virtual headings), the map features (N, d), the
-    poses (N, 3) of the map entries and the columns cropped each side of a view."""
-    spec = ViewSpec(world=setup.world, lighting=setup.lighting, width=setup.width, height=setup.height,
-                    size=setup.size, preprocess=(setup.preprocess,), seed=setup.seed)
-    X = render_vectors(spec, grid, workers=setup.workers,
-                       progress=(lambda d, n: progress("map", d, n)) if progress else None)[setup.preprocess]
-    v = virtual(setup)
-    ch = intensity_channel_from_vectors(X, setup.preprocess, setup.size, setup.features,  # type: ignore[arg-type]
-                                        virtual=v, seed=setup.seed)
-    poses = grid.copy() if v is None else augment_poses(grid, v.offsets)
-    return ch.pca, np.asarray(ch.features, dtype=np.float64), poses, 0 if v is None else v.margin
+    """The survey map as the simulated service builds it (:func:`services.evaluation.views.build_sim_maps`:
+    PCA, eq. 1, of the grid views and their virtual headings): its PCA, the map features (N, d),
+    the poses (N, 3) of the map entries and the columns cropped each side of a view."""
+    amap = build_sim_maps(setup.world, setup.step, setup.heading_step_deg, setup.features, (setup.preprocess,),
+                          lighting=setup.lighting, width=setup.width, height=setup.height, size=setup.size,
+                          seed=setup.seed, workers=setup.workers,
+                          progress=(lambda d, n: progress("map", d, n)) if progress else None,
+                          virtual_headings=setup.virtual_headings, virtual_step_deg=setup.virtual_step_deg,
+                          )[setup.preprocess]
+    ch = amap.channels["intensity"]
+    return ch.pca, np.asarray(ch.features, dtype=np.float64), np.asarray(amap.poses), channel_margin(ch)
 
 
 def render_tests(
@@ -438,7 +427,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     changes = world.check_changes(setup.scene_changes)
     grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
     pans = setup.active_config().actions()
-    pca, map_features, entries, margin = render_map(setup, grid, progress)
+    pca, map_features, entries, margin = render_map(setup, progress)
     truths = place_test_positions(world, setup, grid)
     conditions: list[tuple[str, tuple[str, ...]]] = [("none", ())]
     if changes:
