@@ -422,16 +422,24 @@ class ActionEvaluator:
         kernel factorizes, phi(c | m_(p,h)) ~ g[p, k] v[a, h, k] (position x heading), so
         only the J neighbours of each predicted observation are gathered, A M J M products
         whatever the map size. Used when the table would be larger (many headings: maps with
-        virtual headings, :mod:`lino_loc.virtual_views`)."""
+        virtual headings, :mod:`lino_loc.virtual_views`). One action at a time, into two
+        reused (M J, M) buffers that stay in cache: half the time of gathering all actions'
+        (A, M, J, M) at once."""
         a_n, m = u.size, p.shape[0]
-        n_h = self._headings.size
-        g, v3, pred_col = self._grid_factors(p, u)
-        v = v3.reshape(a_n * n_h, m)
-        lam = self._nn_lam[pred_col]  # (A, M, J)
-        kern = g[self._nn_pcol[pred_col]]  # (A, M, J, M): position factor of each neighbour
-        kern *= v[self._nn_hcol[pred_col] + (np.arange(a_n) * n_h)[:, None, None]]  # heading factor
-        s = np.einsum("amj,amjk->amk", lam, kern)
-        return s, self._entry_of_column[pred_col]
+        j = self._nn_cols.shape[1]
+        g, v, pred_col = self._grid_factors(p, u)
+        lam = self._nn_lam[pred_col][:, :, None, :]  # (A, M, 1, J)
+        pcol = self._nn_pcol[pred_col].reshape(a_n, m * j)  # position of each neighbour
+        hcol = self._nn_hcol[pred_col].reshape(a_n, m * j)  # heading of each neighbour
+        s = np.empty((a_n, m, 1, m), dtype=np.float32)
+        kern = np.empty((m * j, m), dtype=np.float32)
+        head = np.empty((m * j, m), dtype=np.float32)
+        for a in range(a_n):
+            np.take(g, pcol[a], axis=0, out=kern)  # position factor of each neighbour
+            np.take(v[a], hcol[a], axis=0, out=head)  # heading factor
+            kern *= head
+            np.matmul(lam[a], kern.reshape(m, j, m), out=s[a])  # sum_j lambda_j phi_j
+        return s.reshape(a_n, m, m), self._entry_of_column[pred_col]
 
     def likelihoods(self, particles: ArrayLike, actions: ArrayLike) -> tuple[FloatArray, IntArray]:
         """log p(y_i(u) | camera_pose(x_k, u)) as (A, M_i, M_k), and the predicted map entries (A, M).

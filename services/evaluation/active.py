@@ -52,6 +52,7 @@ from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 from lino_loc.virtual_views import crop_columns
+from services.evaluation.active_bounds import feature_diagnostics, ideal_success, map_oracle_success
 from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
 
 log = logging.getLogger(__name__)
@@ -178,63 +179,6 @@ def render_tests(
                        progress=(lambda d, n: progress(label, d, n)) if progress else None)[setup.preprocess]
     X = crop_columns(X, setup.size, margin)
     return np.asarray(pca.project(X), dtype=np.float64).reshape(truths.shape[0], pans.size, -1)
-
-
-def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
-                        truths: np.ndarray,
-                        pans: np.ndarray, feats: np.ndarray) -> dict[str, float]:
-    """How well single test views match the map: over all test views, the fraction whose
-    truth map cell (nearest grid pose to the camera pose, grid units) is the nearest map entry in
-    feature space, and is among the J nearest; the fraction of the J neighbours within one
-    grid step (position and heading) of the camera pose."""
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
-    cams = np.repeat(truths[:, None, :], pans.size, axis=1)
-    cams[:, :, 2] = wrap_angle(cams[:, :, 2] + pans[None, :])
-    cams = cams.reshape(-1, 3)
-    cell = nearest_map_index(cams, grid, setup.step, math.radians(setup.heading_step_deg))
-    idx, _ = model.neighbours(feats.reshape(cams.shape[0], -1))
-    idx_cell = nearest_map_index(entries, grid, setup.step, math.radians(setup.heading_step_deg))[idx]
-    near = (np.hypot(entries[idx, 0] - cams[:, None, 0], entries[idx, 1] - cams[:, None, 1]) <= setup.step * 1.05) & (
-        np.abs(wrap_angle(entries[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
-    return {
-        "truth_cell_is_nearest_in_features": float(np.mean(idx_cell[:, 0] == cell)),
-        "truth_cell_among_j_nearest": float(np.mean(np.any(idx_cell == cell[:, None], axis=1))),
-        "j_neighbours_within_one_grid_step": float(near.mean()),
-    }
-
-
-def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
-                  truths: np.ndarray,
-                  pans: np.ndarray, feats: np.ndarray, images: tuple[int, ...] = (1, 2, 4, 11)) -> dict[str, float]:
-    """Upper bound of the sensor model, without particles: the posterior of the first k images
-    (first pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped
-    area + 30 cm), its maximum as the estimate; success ratio over the test positions."""
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
-    xmin, xmax = grid[:, 0].min() - 0.3, grid[:, 0].max() + 0.3
-    ymin, ymax = grid[:, 1].min() - 0.3, grid[:, 1].max() + 0.3
-    gx, gy, gh = np.meshgrid(np.arange(xmin, xmax + 1e-9, 0.1), np.arange(ymin, ymax + 1e-9, 0.1),
-                             np.radians(np.arange(-180.0, 180.0, 5.0)), indexing="ij")
-    dense = np.column_stack([gx.ravel(), gy.ravel(), gh.ravel()])
-    hstep = math.radians(setup.heading_step_deg)
-    out: dict[str, float] = {}
-    hits: dict[int, list[bool]] = {k: [] for k in images}
-    hits_pose: dict[int, list[bool]] = {k: [] for k in images}
-    for pos in range(truths.shape[0]):
-        a0 = int(np.random.default_rng((setup.seed, pos, 0, 1)).integers(pans.size))
-        lp = np.zeros(dense.shape[0])
-        for k in range(max(images)):
-            a = (a0 + setup.sweep_stride * k) % pans.size
-            cam = dense.copy()
-            cam[:, 2] += pans[a]
-            lp += model.observe(feats[pos, a]).log_pdf(cam)
-            if k + 1 in hits:
-                best = dense[int(np.argmax(lp))]
-                hits[k + 1].append(bool(success(best, truths[pos], grid)[0]))
-                hits_pose[k + 1].append(bool(success_pose(best, truths[pos], grid, setup.step, hstep)[0]))
-    for k, v in hits.items():
-        out[str(k)] = float(np.mean(v))
-        out[f"{k}_pose"] = float(np.mean(hits_pose[k]))
-    return out
 
 
 # --------------------------------------------------------------------------- runs
@@ -448,6 +392,8 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
         if setup.ideal:
             diagnostics[name]["ideal_map_estimate_success"] = ideal_success(setup, grid, entries, map_features, truths,
                                                                             pans, feats)
+            diagnostics[name]["map_oracle_success"] = map_oracle_success(setup, grid, entries, map_features, truths,
+                                                                         pans, feats)
         diagnostics[name]["initial_particle_in_truth_cell"] = float(np.mean([c for p in parts for c in p["covered"]]))
         timing.extend(v for p in parts for v in p["eval_ms"])
     base = results["none"]
