@@ -14,10 +14,8 @@ Per start pose, one simulator and one daemon, two phases of ``WINDOW_S`` seconds
    pan 0), then, once the head is there, ``global_localization``: the same robot at the same
    pose localizes again with the head fixed.
 
-(Not the other order, fixed first and ``set_active_vision true`` later: with ``enabled =
-false`` in the file, services/daemon.py ``make_active_policy`` copies that flag into the
-policy it creates at runtime, whose ``decide()`` then always answers "disabled" - the head
-never moves. A daemon bug, reported to the lead.)
+(The file enables active vision so that phase 1 starts with the daemon; switching it on at
+run time from ``enabled = false`` works too: tests/test_active_policy_service.py.)
 
 The five start poses were chosen with an offline scan of the office (Localizer fed six
 noisy views of one pose): from each of them one view keeps the filter in ``global`` (several
