@@ -18,13 +18,11 @@ import argparse
 import json
 import os
 import sys
-import time
 from typing import Any
 
 from services.messages import TOPICS, decode
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5556"
-POLL_MS = 200  # longest wait in the socket before the loop looks at signals and the timeout
 
 
 def _positive_int(text: str) -> int:
@@ -66,22 +64,17 @@ def run_echo(args: argparse.Namespace) -> int:
             print(f"lino-loc echo: cannot connect to {args.endpoint!r}: {exc}", file=sys.stderr)
             return 2
         received = 0
-        last = time.monotonic()
+        timeout_ms = None if args.timeout is None else int(args.timeout * 1000)
         while args.count is None or received < args.count:
-            # Wait in short polls, never in one blocking receive: back in Python between
-            # them, so Ctrl-C is seen at once even when no message arrives.
-            if not sock.poll(POLL_MS):
-                if args.timeout is not None and time.monotonic() - last >= args.timeout:
-                    print(
-                        f"lino-loc echo: no {'/'.join(topics)} message on {args.endpoint} within "
-                        f"{args.timeout:g} s (is `lino-loc run` publishing there?)",
-                        file=sys.stderr,
-                    )
-                    status = 1
-                    break
-                continue
+            if timeout_ms is not None and not sock.poll(timeout_ms):
+                print(
+                    f"lino-loc echo: no {'/'.join(topics)} message on {args.endpoint} within "
+                    f"{args.timeout:g} s (is `lino-loc run` publishing there?)",
+                    file=sys.stderr,
+                )
+                status = 1
+                break
             frames = sock.recv_multipart()
-            last = time.monotonic()
             if len(frames) != 2:
                 if not warned_frames:
                     print(f"lino-loc echo: skipping a {len(frames)}-frame message "
