@@ -142,17 +142,32 @@ def test_argument_validation(argv):
     assert info.value.code == 2
 
 
+def _default_sigint() -> None:
+    """Ctrl-C as at a terminal. A test run started in the background by a non-interactive
+    shell (`./scripts/test.sh &`) inherits SIGINT ignored, its children too, and Python then
+    (rightly) installs no KeyboardInterrupt handler: echo would ignore the SIGINT."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_is_quiet(publisher):
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.commands.echo", "--endpoint", publisher.endpoint],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        preexec_fn=_default_sigint,  # noqa: PLW1509 - one signal() call between fork and exec
     )
     try:
         first = proc.stdout.readline()  # blocks until the stream flows
         assert first.startswith(b"pose {"), first
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
+        try:
+            out, err = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            running = proc.poll() is None
+            proc.send_signal(signal.SIGABRT)  # faulthandler: every thread's stack on stderr
+            _, err = proc.communicate(timeout=10)
+            pytest.fail(f"echo did not stop 10 s after SIGINT (still running: {running}); stderr:\n"
+                        + err.decode(errors="replace")[-4000:])
     finally:
         if proc.poll() is None:
             proc.kill()
