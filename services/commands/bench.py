@@ -205,7 +205,10 @@ def run_update_bench(
     queries = np.asarray([amap.channels["intensity"].project(im) for im in images[:10]], dtype=np.float64)
     for size in map_sizes:
         m, synthetic = (amap, False) if size == 4000 else _resized_map(amap, size, rng)
-        entry = _time_updates(m, 1000, frames, max(20, repeats // 2))
+        if m is amap and "1000" in result["update_ms"]:  # the headline setting: one measurement
+            entry = dict(result["update_ms"]["1000"])
+        else:
+            entry = _time_updates(m, 1000, frames, max(20, repeats // 2))
         model = NearestNeighbourSensorModel(m.poses, np.asarray(m.channels["intensity"].features, dtype=np.float64),
                                             SensorModelConfig())
         entry.update({"entries": len(m), "synthetic": synthetic, "index": model.index_kind,
