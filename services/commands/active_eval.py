@@ -104,7 +104,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--floor-theta", type=float, default=0.5,
                    help="MotionModelConfig.min_sigma_theta: process-noise floor per update, degrees")
     p.add_argument("--ideal", action="store_true",
-                   help="also compute the sensor model's upper bound (dense-grid posterior, no particles)")
+                   help="also compute the sensor model's upper bound (dense-grid posterior, no particles) and "
+                   "the map oracle (the map position whose stored views best match the views taken)")
     p.add_argument("--step", type=float, default=0.75, help="map grid step, metres")
     p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees")
     p.add_argument("--actions", type=int, default=22, help="candidate pan angles")
