@@ -423,8 +423,8 @@ class ActionEvaluator:
         only the J neighbours of each predicted observation are gathered, A M J M products
         whatever the map size. Used when the table would be larger (many headings: maps with
         virtual headings, :mod:`lino_loc.virtual_views`). One action at a time, into two
-        reused (M J, M) buffers that stay in cache: half the time of gathering all actions'
-        (A, M, J, M) at once."""
+        reused (M J, M) buffers that stay in cache, instead of one (A, M, J, M) array for all
+        actions (1.8 MB of temporaries instead of 40 MB at 150 x 22, J = 10; faster too)."""
         a_n, m = u.size, p.shape[0]
         j = self._nn_cols.shape[1]
         g, v, pred_col = self._grid_factors(p, u)

@@ -84,8 +84,6 @@ def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map
     return out
 
 
-
-
 def sweep_order(setup: ActiveSetup, pos: int, run: int, n_actions: int) -> list[int]:
     """The pans of the fixed sweep from run ``run``'s first pan at test position ``pos`` (the
     first pan is drawn as :func:`services.evaluation.active.run_position` draws it)."""
@@ -116,8 +114,8 @@ def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray
     For test position p and the views y_1..y_k taken at pans u_1..u_k, every map position g
     and robot heading o (on the map's heading lattice) is scored by
     ``sum_i |y_i - y(g, o + u_i)|^2`` with y(g, theta) the map's stored features; the best g
-    is the decision and it succeeds when it is the map position nearest to the truth (the
-    section 6.1 criterion on positions). It uses nothing but the map and knows which pans
+    is the decision and it succeeds when it is the map position nearest to the truth
+    (:func:`lino_loc.metrics.success`, section 6.1, against ``grid``, the survey poses). It uses nothing but the map and knows which pans
     were taken, so it says how many views the map needs to tell the test positions' cells
     apart; averaged over ``setup.runs`` first pans (sweep order, stride ``sweep_stride``).
     """
@@ -126,7 +124,6 @@ def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray
     shift = np.round(np.asarray(pans) / step).astype(np.int64)
     images = tuple(k for k in images if k <= pans.size)
     hits: dict[int, list[bool]] = {k: [] for k in images}
-    nearest = np.argmin(np.hypot(truths[:, None, 0] - xy[None, :, 0], truths[:, None, 1] - xy[None, :, 1]), axis=1)
     for pos in range(truths.shape[0]):
         for run in range(setup.runs):
             cost = np.zeros(table.shape[:2])
@@ -135,5 +132,6 @@ def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray
                 cost += np.sum((table[:, cols, :] - feats[pos, a]) ** 2, axis=2)
                 if k + 1 in hits:
                     g = np.unravel_index(np.nanargmin(np.where(np.isnan(cost), np.inf, cost)), cost.shape)[0]
-                    hits[k + 1].append(bool(g == nearest[pos]))
+                    named = np.array([xy[g, 0], xy[g, 1], 0.0])
+                    hits[k + 1].append(bool(success(named, truths[pos], grid)[0]))
     return {str(k): float(np.mean(v)) for k, v in hits.items()}
