@@ -130,6 +130,7 @@ class KidnapRecovery:
         self.log_w_fast = -math.inf
         self.injected = 0
         self._restart_averages = False
+        self._since_change: int | None = None  # updates since an appearance change (relearning)
         self.lost_updates = 0
         self.recoveries = 0  # candidate sets adopted since the last reset
         self.candidate_draws = 0  # candidate sets drawn since the last reset
@@ -150,24 +151,45 @@ class KidnapRecovery:
     def _track_likelihood(
         self, ll: float, familiarity: float = 1.0, floor: float = -math.inf
     ) -> None:
-        """AMCL's w_slow / w_fast: exponential averages of the likelihood (in log space)."""
+        """AMCL's w_slow / w_fast: exponential averages of the likelihood (in log space).
+
+        After an appearance change (:meth:`relearn_averages`) both start as the plain mean of
+        the likelihoods seen since (rate 1 / n until it falls to ``alpha_slow`` /
+        ``alpha_fast``), so that w_slow is the typical likelihood under the NEW light rather
+        than one frame's."""
         c = self.config
         if not math.isfinite(ll):
             ll = UNEXPLAINED
+        a_slow, a_fast = c.alpha_slow, c.alpha_fast
+        if self._since_change is not None:
+            self._since_change += 1
+            a_slow = max(a_slow, 1.0 / self._since_change)
+            a_fast = max(a_fast, 1.0 / self._since_change)
+            if a_slow <= c.alpha_slow:
+                self._since_change = None
         if not math.isfinite(self.log_w_slow) or self._restart_averages:
             self._restart_averages = False
             self.log_w_slow = ll
             self.log_w_fast = ll
             self.lost_updates = 0
             return
-        self.log_w_slow = log_ema(self.log_w_slow, ll, c.alpha_slow)
-        self.log_w_fast = log_ema(self.log_w_fast, ll, c.alpha_fast)
+        self.log_w_slow = log_ema(self.log_w_slow, ll, a_slow)
+        self.log_w_fast = log_ema(self.log_w_fast, ll, a_fast)
         collapsed = self.log_w_fast < self.log_w_slow + math.log(c.recovery_ratio)
         unexplained = self.log_w_fast < floor + math.log(c.recovery_floor_factor)
         if not (collapsed or unexplained):
             self.lost_updates = 0
         elif self.candidates is None and familiarity >= 0.5:
             self.lost_updates += 1  # a novel view neither adds to nor clears the evidence
+
+    def relearn_averages(self) -> None:
+        """The scene's appearance changed (``lino_loc.appearance_change``): restart w_slow and
+        w_fast as running means from the next likelihood, clear the lost evidence and drop a
+        candidate set under test (it was drawn and scored under the old appearance)."""
+        self._restart_averages = True
+        self._since_change = 0
+        self.lost_updates = 0
+        self._drop_candidates()
 
     def inject_fraction(self) -> float:
         """max(0, 1 - w_fast / w_slow), capped at ``max_inject_fraction``."""

@@ -100,6 +100,15 @@ class LostDetector:
         self._belief_hits = 0.0
         self._trusted = False
 
+    def appearance_changed(self) -> None:
+        """The scene's appearance changed (lino_loc.appearance_change): forget the learnt hit rate
+        (it described the old light; ``warmup_views`` views teach the new one before evidence
+        counts again) and the evidence, keep the belief's confirmation."""
+        self._hits = 0.0
+        self._views = 0.0
+        self._learnt = 0.0
+        self.score = 0.0
+
     def confirm(self) -> None:
         """Take the belief as confirmed without views (a pose given by the user)."""
         self._trusted = True

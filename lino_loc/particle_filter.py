@@ -64,6 +64,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.apf import StepResult, apf_step, normalize
+from lino_loc.appearance_change import AppearanceChangeDetector
 from lino_loc.errors import LinoLocError
 from lino_loc.kidnap_recovery import KidnapRecovery, outlier_floor
 from lino_loc.lost_detection import LostDetector
@@ -227,6 +228,18 @@ class FilterConfig(BaseModel):
         "particles is drawn from the image's sensor-model mixture (importance-weighted, see "
         "AuxiliaryParticleFilter.global_seed); 0 = the plain APF from the uniform set",
     )
+    appearance_change: bool = Field(
+        True, description="watch for changes of the scene's appearance (lights switched): kidnap "
+        "recovery and the lost test then relearn what normal looks like instead of taking the "
+        "worse views for a kidnapping (lino_loc.appearance_change)",
+    )
+    appearance_change_ratio: float = Field(
+        1.65, gt=1.0, description="a rise of the views' novelty by more than this factor is "
+        "evidence of an appearance change",
+    )
+    appearance_change_evidence: float = Field(
+        8.0, gt=0.0, description="CUSUM evidence (log-novelty units) for an appearance change"
+    )
     seed: int | None = None
 
 
@@ -260,6 +273,11 @@ class AuxiliaryParticleFilter(KidnapRecovery):
             view_theta=c.lost_view_theta,
             warmup_views=c.lost_warmup_views,
             confirm_views=c.confirm_views,
+        )
+        self.appearance_watch = (
+            AppearanceChangeDetector(ratio=c.appearance_change_ratio, evidence=c.appearance_change_evidence)
+            if c.appearance_change
+            else None
         )
         self.particles = np.zeros((n, 3))
         self.log_weights = np.full(n, -math.log(n))
@@ -453,6 +471,8 @@ class AuxiliaryParticleFilter(KidnapRecovery):
         self.last_log_likelihood = ll
         fam = self.familiarity(mixture.novelty)
         floor = outlier_floor(mixture)
+        if self.appearance_watch is not None and self.appearance_watch.update(mixture.novelty):
+            self._appearance_changed()
         self._track_likelihood(ll, fam, floor)
         self.lost_detector.update(
             # rho is learnt from trusted beliefs (tracking, or lost: slowly, while evidence
@@ -467,6 +487,15 @@ class AuxiliaryParticleFilter(KidnapRecovery):
             self._resample_belief()
         self._update_state()
         return ll
+
+    def _appearance_changed(self) -> None:
+        """The views became less familiar all at once (lino_loc.appearance_change): the light,
+        not the pose, changed. What the self-checks learnt under the old appearance no longer
+        holds: kidnap recovery restarts its likelihood averages from this view and drops a
+        candidate set it was testing, the lost test forgets its learnt hit rate and its
+        evidence. The belief itself is left alone."""
+        self.relearn_averages()
+        self.lost_detector.appearance_changed()
 
     def _log_free_fraction(self) -> float:
         """log of the free-space share of the bounds (Monte Carlo, fixed seed, cached)."""

@@ -119,6 +119,33 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
     # the written estimate gives back the reported error
     err = np.hypot(*(est[:, :2] - truth[:, :2]).T)
     assert err.mean() == pytest.approx(res["conditions"]["tube"]["mean_error_m"], abs=1e-5)
+    sw = res["light_switch"]  # tube for frames 0-1, bulb for 2-4
+    assert sw["lights"] == ["tube", "bulb"] and sw["switch_at_s"] == pytest.approx(1.0)
+    assert 0.0 <= sw["lost_fraction_after"] <= 1.0 and sw["mean_error_after_m"] <= sw["max_error_after_m"]
+
+
+def test_light_switch_metrics_on_a_known_run() -> None:
+    stamps = np.arange(8) * 0.5
+    truth = np.zeros((8, 3))
+    est = np.zeros((8, 3))
+    est[:, 0] = [0.1, 0.1, 0.1, 0.1, 0.5, 0.3, 0.2, 0.2]  # error grows after the switch at frame 4
+    states = ["tracking"] * 4 + ["lost", "lost", "tracking", "tracking"]
+    m = tracking.switch_metrics(stamps, est, truth, states, 4)
+    assert m["switch_at_s"] == 2.0
+    assert m["mean_error_before_m"] == pytest.approx(0.1)
+    assert m["mean_error_after_m"] == pytest.approx(0.3) and m["max_error_after_m"] == pytest.approx(0.5)
+    assert m["lost_fraction_before"] == 0.0 and m["lost_fraction_after"] == 0.5
+    assert m["last_lost_after_switch_s"] == pytest.approx(0.5)  # frame 5, 0.5 s after the switch
+    quiet = tracking.switch_metrics(stamps, est, truth, ["tracking"] * 8, 4)
+    assert quiet["lost_fraction_after"] == 0.0 and quiet["last_lost_after_switch_s"] == 0.0
+
+
+def test_switch_lights_argument_errors(capsys) -> None:
+    from services.cli import main
+
+    for bad, needle in (("tube", "expected two lights"), ("tube,sodium", "sodium not in --lights")):
+        assert main(["eval", "tracking", "--lights", "tube,bulb", "--switch-lights", bad]) == 2
+        assert needle in capsys.readouterr().err
 
 
 def test_converged_after_needs_the_error_to_stay_low() -> None:

@@ -69,6 +69,19 @@ def _global(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- tracking
 
 
+def _switch_lights(text: str, lights: tuple[str, ...]) -> tuple[str, str] | None:
+    """``--switch-lights A,B`` (``none``: no switch run); both must be among ``--lights``."""
+    if text in ("", "none"):
+        return None
+    pair = tuple(c.strip() for c in text.split(","))
+    if len(pair) != 2 or not all(pair):
+        raise LinoLocError(f"--switch-lights: expected two lights A,B or none, got {text!r}")
+    missing = [c for c in pair if c not in lights]
+    if missing:
+        raise LinoLocError(f"--switch-lights: {', '.join(missing)} not in --lights {','.join(lights)}")
+    return pair[0], pair[1]
+
+
 def _tracking(args: argparse.Namespace) -> int:
     from services.evaluation.tracking import TrackingSetup, run
 
@@ -81,6 +94,7 @@ def _tracking(args: argparse.Namespace) -> int:
                           scene_changes=changes, duration=args.duration, rate=args.rate,
                           particles=args.particles, j=args.j, global_start=not args.no_global,
                           compare_recovery=not args.no_recovery_comparison,
+                          switch_lights=_switch_lights(args.switch_lights, lights),
                           seed=args.seed, workers=args.workers)
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), trajectories=args.trajectories, progress=cb)  # type: ignore[arg-type]
@@ -108,6 +122,13 @@ def _tracking(args: argparse.Namespace) -> int:
             print(line)
     o = res["odometry"]
     print(f"  odometry alone: ATE {o['ate_rmse_m']:.3f} m, mean {o['mean_error_m']:.3f} m, max {o['max_error_m']:.3f} m")
+    sw = res.get("light_switch")
+    if sw:
+        print(f"  lights {' -> '.join(sw['lights'])} at {sw['switch_at_s']:.0f} s: mean error before / after "
+              f"{sw['mean_error_before_m']:.3f} / {sw['mean_error_after_m']:.3f} m (max after "
+              f"{sw['max_error_after_m']:.3f}), lost {100 * sw['lost_fraction_before']:.1f} / "
+              f"{100 * sw['lost_fraction_after']:.1f} % of frames, last lost {sw['last_lost_after_switch_s']:.1f} s "
+              "after the switch")
     return 0
 
 
@@ -163,6 +184,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help=f"image preprocessing of the map (default {DEFAULT_PREPROCESS}, measured best); "
                         "'all' compares the three")
     p.add_argument("--lights", default="tube,bulb,natural", help="comma-separated lighting setups")
+    p.add_argument("--switch-lights", default="tube,bulb", metavar="A,B",
+                   help="also a run whose light switches from A to B halfway (both in --lights; none: skip)")
     p.add_argument("--changes", default=",".join(DEFAULT_CHANGES),
                    help="comma-separated scene changes unknown to the map ('none' for none)")
     p.add_argument("--particles", type=int, default=None)

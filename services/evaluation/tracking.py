@@ -28,6 +28,14 @@ familiar views for recovery while tracking (``lino_loc.particle_filter``, see th
 
 ``odometry`` gives the same errors for dead reckoning alone (integrated odometry from the
 true start), to show what the camera adds.
+
+``light_switch`` (when ``switch_lights`` = (a, b) are both among ``lights``): the lights are
+switched from a to b halfway through the drive (the frames of the two renders spliced at
+the middle frame), one run from the known start: the errors before and after the switch, the
+share of frames after it labelled ``lost`` and how long after it the last ``lost`` frame
+comes (:func:`switch_metrics`). A building's lights are switched while the robot works; the
+filter's lost test calibrates itself to the light it sees (``lino_loc.lost_detection``), so
+this measures what a switch costs until it has.
 """
 
 from __future__ import annotations
@@ -74,6 +82,7 @@ class TrackingSetup:
     converged_hold_s: float = 5.0
     global_start: bool = True
     compare_recovery: bool = True
+    switch_lights: tuple[str, str] | None = ("tube", "bulb")
     width: int = 320
     height: int = 240
     size: tuple[int, int] = (80, 60)
@@ -124,6 +133,27 @@ def run_filter(
     return est, states
 
 
+def switch_metrics(
+    stamps: np.ndarray, est: np.ndarray, truth: np.ndarray, states: list[str], k_switch: int
+) -> dict[str, Any]:
+    """Errors before / after the frame ``k_switch`` where the light changed, the share of the
+    frames after it in state ``lost``, and the seconds from the switch to the last ``lost``
+    frame after it (0 if none)."""
+    err = position_errors(est, truth)
+    lost = np.array([s == "lost" for s in states])
+    after = lost[k_switch:]
+    last = np.flatnonzero(after)
+    return {
+        "switch_at_s": float(stamps[k_switch] - stamps[0]),
+        "mean_error_before_m": float(err[:k_switch].mean()),
+        "mean_error_after_m": float(err[k_switch:].mean()),
+        "max_error_after_m": float(err[k_switch:].max()),
+        "lost_fraction_before": float(lost[:k_switch].mean()),
+        "lost_fraction_after": float(after.mean()),
+        "last_lost_after_switch_s": float(stamps[k_switch + last[-1]] - stamps[k_switch]) if last.size else 0.0,
+    }
+
+
 def track_metrics(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     err = position_errors(est, truth)
     return {
@@ -166,12 +196,16 @@ def run(
         write_tum(out_dir / "truth.tum", plan.stamps, truth, comment=f"true robot poses, world {setup.world}")
         write_tum(out_dir / "odometry.tum", plan.stamps, odo, comment="wheel odometry (dead reckoning)")
     by_pre: dict[str, dict[str, Any]] = {pre: {} for pre in setup.preprocess}
+    switch = setup.switch_lights if setup.switch_lights and set(setup.switch_lights) <= set(setup.lights) else None
+    kept: dict[str, np.ndarray] = {}
     for light in setup.lights:
         cond = "+".join((light, *changes))
         spec = ViewSpec(world=setup.world, lighting=light, scene_changes=changes, width=setup.width,
                         height=setup.height, size=setup.size, seed=setup.seed + 11)
         images = render_grey(spec, truth, workers=setup.workers,
                              progress=(lambda d, n, c=cond: progress(f"render {c}", d, n)) if progress else None)
+        if switch is not None and light in switch:
+            kept[light] = images
         for pre in setup.preprocess:
             amap = maps[pre]
             est, states = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1))
@@ -211,6 +245,14 @@ def run(
             log.info("tracking %s %s: mean %.3f m, max %.3f m, converged after %s s", cond, pre,
                      res["mean_error_m"], res["max_error_m"], res.get("converged_after_s"))
     head = setup.preprocess[0]
+    switched: dict[str, Any] | None = None
+    if switch is not None:
+        k_sw = len(plan) // 2
+        images = np.concatenate([kept[switch[0]][:k_sw], kept[switch[1]][k_sw:]])
+        est, states = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1))
+        switched = {"lights": list(switch), **switch_metrics(plan.stamps, est, truth, states, k_sw)}
+        log.info("tracking, lights %s -> %s at %.0f s: mean error after %.3f m, lost after %.1f %%", *switch,
+                 switched["switch_at_s"], switched["mean_error_after_m"], 100 * switched["lost_fraction_after"])
     result: dict[str, Any] = {
         "world": setup.world,
         "map_entries": int(np.asarray(maps[head].poses).shape[0]),
@@ -230,6 +272,8 @@ def run(
         "conditions": by_pre[head],
         "odometry": track_metrics(odo, truth),
     }
+    if switched is not None:
+        result["light_switch"] = switched
     if len(setup.preprocess) > 1:
         result["by_preprocess"] = by_pre
     return result

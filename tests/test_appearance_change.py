@@ -1,0 +1,100 @@
+"""Appearance-change detection (lino_loc/appearance_change.py) and what the filter does with it:
+closed-form detection delay, no alarms on stationary novelty, the filter's relearning."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lino_loc.appearance_change import AppearanceChangeDetector
+from lino_loc.poses import camera_pose
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_particle_filter import _drive, _filter, _synthetic_model  # noqa: E402
+
+
+def test_a_step_in_novelty_is_found_after_the_closed_form_delay() -> None:
+    """Novelty 1 then 2, no noise. The level is learnt only in control: the first changed
+    view still teaches it (no evidence stood before it), mu = 0.01 log 2, then it stays while
+    the evidence builds: S_n = (log 2 - log 1.65) + (n - 1)(log 2 - mu - log 1.65), which
+    passes 8 at the 44th view."""
+    det = AppearanceChangeDetector(ratio=1.65, evidence=8.0, alpha=0.01)
+    assert not any(det.update(1.0) for _ in range(200))
+    fired = [k for k in range(200) if det.update(2.0)]
+    step, mu = math.log(2.0) - math.log(1.65), 0.01 * math.log(2.0)
+    n = 1 + math.floor((8.0 - step) / (step - mu)) + 1  # first n with S_n > 8
+    assert n == 44 and fired == [n - 1]
+    # then it restarts at the new level: no second alarm on the plateau
+    assert det.changes == 1 and det.level == pytest.approx(math.log(2.0))
+
+
+def test_less_novel_views_and_missing_novelty_are_not_changes() -> None:
+    det = AppearanceChangeDetector()
+    for _ in range(100):
+        det.update(2.5)
+    assert not any(det.update(1.0) for _ in range(500))  # lights back to the mapping light
+    assert not any(det.update(v) for v in (math.nan, 0.0, -1.0, math.inf))
+    assert det.changes == 0
+
+
+def test_stationary_novelty_raises_no_alarm() -> None:
+    """Log-novelty spread like the lab's (sd 0.38 per view, here independent): none in 5000."""
+    rng = np.random.default_rng(0)
+    det = AppearanceChangeDetector()
+    assert not any(det.update(float(v)) for v in np.exp(0.25 + 0.38 * rng.standard_normal(5000)))
+
+
+def _switch_run(pf, model, f, *, horizon=150, switch=60, offset=0.8, seed=2):
+    """Drive as the kidnap tests do; from ``switch`` on every view is changed the same way
+    (a fixed shift of the features plus noise: less familiar everywhere, like other light)."""
+    rng = np.random.default_rng(seed)
+    shift = np.random.default_rng(5).normal(0, 1, 8)
+    shift *= offset / np.linalg.norm(shift)
+    truth, pan = np.array([1.0, 1.0, 0.3]), 0.4
+    errors, states, changes = [], [], []
+    for t in range(horizon):
+        truth, d = _drive(truth)
+        y = f(camera_pose(truth, pan))[0] + rng.normal(0, 0.05, 8)
+        if t >= switch:
+            y = y + shift + rng.normal(0, offset / 2, 8)
+        pf.update(d + rng.normal(0, 0.01, 3), pan, model.observe(y))
+        est = pf.estimate()
+        errors.append(float(np.hypot(*(est.pose[:2] - truth[:2]))))
+        states.append(est.state)
+        changes.append(pf.appearance_watch.changes if pf.appearance_watch else 0)
+    return np.array(errors), states, np.array(changes)
+
+
+def test_filter_relearns_after_an_appearance_change_and_keeps_its_belief() -> None:
+    model, f = _synthetic_model()
+    pf = _filter(n=800, seed=1)
+    errors, states, changes = _switch_run(pf, model, f)
+    first = int(np.argmax(changes > 0))
+    assert changes[59] == 0 and 60 <= first <= 90 and changes[-1] == 1  # found once, after the switch
+    assert pf.candidate_draws == 0 and pf.recoveries == 0
+    assert "lost" not in states[first:]
+    assert np.all(errors[30:] < 0.5), errors[30:]
+    # what it relearnt: w_slow is the running mean of the likelihoods since the change, so it
+    # sits at the new (lower) level, no longer at the one learnt before
+    assert pf.log_w_slow < pf.log_w_fast + math.log(1.0 / pf.config.recovery_ratio)
+
+
+def test_the_detector_can_be_switched_off() -> None:
+    pf = _filter(n=100, seed=1, appearance_change=False)
+    assert pf.appearance_watch is None
+
+
+def test_relearnt_averages_are_running_means() -> None:
+    """After relearn_averages(), w_slow and w_fast are the plain means (linear space) of the
+    likelihoods seen since, until 1 / n falls below their rates."""
+    pf = _filter(n=100, seed=1)
+    pf.relearn_averages()
+    lls = [-1.0, -3.0, -2.0, -5.0]
+    for ll in lls:
+        pf._track_likelihood(ll)
+    mean = math.log(np.mean(np.exp(lls)))
+    assert pf.log_w_slow == pytest.approx(mean) and pf.log_w_fast == pytest.approx(mean)
