@@ -42,7 +42,10 @@ lab, 2.6 under ``bulb``, 3.7 under ``natural``). The recovery used while trackin
    below ``-candidate_margin`` or after ``candidate_max_updates`` (40).
 
 This is a multi-hypothesis check (the candidate competes with the belief by accumulated
-likelihood, as a sequential likelihood-ratio test) gated by the view's familiarity. Measured
+likelihood, as a sequential likelihood-ratio test) gated by the view's familiarity. When the
+lights are switched while tracking, w_slow still holds the old light's level and every view
+looks like lost evidence; the filter's appearance-change detector
+(``lino_loc.appearance_change``) then calls :meth:`KidnapRecovery.relearn_averages`. Measured
 (240 s lab drive, scene changes, 1000 particles): mean error 0.15 / 0.33 / 0.30 m under tube /
 bulb / natural light, the same as without recovery (no candidate set is drawn); a kidnapping
 (the belief displaced by 3 m, or 2.5 m and 57 deg, or turned by 143 deg) under the mapping
