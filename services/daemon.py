@@ -269,6 +269,7 @@ class Daemon:
         self.truths = 0
         self.frames_used = 0
         self.frames_skipped = 0  # out of order
+        self._appearance_changes_logged = 0
         self.frames_head_moving = 0
         self.av_commands = 0
         self.av_last_decision: str | None = None
@@ -426,6 +427,7 @@ class Daemon:
         else:
             self.frames_used += 1
         est = self.localizer.update(delta, pan, image, disparity, stamp=stamp)
+        self._note_appearance_change()
         self._last_update_stamp = stamp
         if self.dead_reckoning:
             log.info("camera frames again: localizing with images")
@@ -433,6 +435,17 @@ class Daemon:
         self._publish_pose(est, stamp, pan)
         self._period_frames += 1
         self._active_vision(est, stamp)
+
+    def appearance_changes(self) -> int:
+        watch = self.localizer.filter.appearance_watch
+        return watch.changes if watch is not None else 0
+
+    def _note_appearance_change(self) -> None:
+        n = self.appearance_changes()
+        if n > self._appearance_changes_logged:
+            self._appearance_changes_logged = n
+            log.info("the views became less familiar all at once (lights switched?): the filter "
+                     "relearns what they look like (appearance change %d)", n)
 
     def _maybe_dead_reckon(self, mono: float) -> None:
         since = self._last_frame_mono if self._last_frame_mono is not None else self._started_mono
@@ -579,6 +592,7 @@ class Daemon:
             frames=self.mailbox.received,
             dropped_frames=self.dropped_frames(),
             out_of_order_frames=self.frames_skipped,
+            appearance_changes=self.appearance_changes(),
             latency_ms=latency,
             devices={k: DeviceHealthModel.from_health(h) for k, h in health.items()},
             uptime_s=time.monotonic() - self._started_mono,

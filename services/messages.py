@@ -258,6 +258,10 @@ class StatusMessage(_Published):
     out_of_order_frames: int = Field(
         0, ge=0, description="frames skipped because they were older than the last one used"
     )
+    appearance_changes: int = Field(
+        0, ge=0, description="changes of the scene's appearance (lights switched) the filter "
+        "found and relearnt after, since start"
+    )
     latency_ms: LatencyStats = Field(default_factory=LatencyStats)
     devices: dict[str, DeviceHealthModel] = Field(
         default_factory=dict, description="keys: camera, head, odometry"

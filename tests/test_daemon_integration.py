@@ -418,6 +418,7 @@ def test_malformed_control_messages_get_errors_and_the_loop_keeps_publishing(rig
     assert request(rig.rep, {"cmd": "ping"})["ok"] is True
     st = request(rig.rep, {"cmd": "status"})
     assert st["ok"] and st["status"]["state"] in ("global", "tracking", "lost")
+    assert isinstance(st["status"]["appearance_changes"], int) and st["status"]["appearance_changes"] >= 0
     for cmd in ({"cmd": "pause"}, {"cmd": "resume"}, {"cmd": "set_active_vision", "enabled": False},
                 {"cmd": "set_active_vision", "enabled": True}):
         reply = request(rig.rep, cmd)
