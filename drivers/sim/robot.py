@@ -205,6 +205,7 @@ class SimRobot:
         self.config = c = config or SimRobotConfig()
         self.world = world if world is not None else load_world(c.world)
         self.world.check_lighting(c.lighting)
+        self.lighting = c.lighting  # the lights now (switch_lighting changes them)
         self.scene_changes = self.world.check_changes(c.scene_changes)
         self.on_truth = on_truth
         self.on_frame = on_frame
@@ -504,6 +505,16 @@ class SimRobot:
                     break
         return integrate(state.pose, state.v, state.omega, max(0.0, stamp - state.stamp))
 
+    def switch_lighting(self, lighting: str) -> None:
+        """Switch the building's lights while running (a light switched on or off in a real
+        building). Bakes the new lighting in the calling thread (seconds); the camera renders
+        under the old light until the new renderer is ready, then every frame uses it."""
+        self.world.check_lighting(lighting)
+        renderer = Renderer(self.world, self.camera_model, lighting, self.scene_changes, seed=self.config.seed)
+        self.renderer = renderer
+        self.lighting = lighting
+        log.info("sim robot: lighting switched to %s", lighting)
+
     # camera --------------------------------------------------------------------------------------
     def _run_camera(self) -> None:
         c = self.config
@@ -525,6 +536,7 @@ class SimRobot:
             pan, tilt = self._head_angles()
             pose = self.pose_at(stamp)
             tilt_q = round(tilt / TILT_QUANTUM) * TILT_QUANTUM
+            renderer = self.renderer  # switch_lighting may have replaced it
             t_r = time.perf_counter()
             try:
                 res = renderer.render(

@@ -169,10 +169,14 @@ def run_sim(args: argparse.Namespace) -> int:
 
     done = threading.Event()
     unplug = threading.Event()
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)}
+    switch = threading.Event()
+    previous = {
+        s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
+    }
     signal.signal(signal.SIGINT, lambda *_: done.set())
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGUSR1, lambda *_: unplug.set())
+    signal.signal(signal.SIGUSR2, lambda *_: switch.set())
     if args.exit_with_parent:
         _exit_with_parent()
     tmpdir = tempfile.mkdtemp(prefix="lino-loc-sim-")
@@ -202,6 +206,7 @@ def run_sim(args: argparse.Namespace) -> int:
                 truth_stats["dropped"] += 1
 
         robot = SimRobot(rc, on_truth=publish_truth, context=ctx)
+        robot.world.check_lighting(args.switch_lighting)  # a bad name fails now, not at SIGUSR2
         robot.start()
         started = True
         line = {
@@ -217,7 +222,8 @@ def run_sim(args: argparse.Namespace) -> int:
             sys.stdout.flush()
         except BrokenPipeError:
             log.warning("sim: stdout is closed; running anyway")
-        log.info("sim: running (%s); SIGINT/SIGTERM stops, SIGUSR1 unplugs the odometry board for 2 s",
+        log.info("sim: running (%s); SIGINT/SIGTERM stops, SIGUSR1 unplugs the odometry board for 2 s, "
+                 "SIGUSR2 switches the lights",
                  json.dumps(line))  # fmt: skip
         t_end = time.monotonic() + args.duration if args.duration else None
         next_report = time.monotonic() + args.stats_period
@@ -232,6 +238,11 @@ def run_sim(args: argparse.Namespace) -> int:
                 robot.odometry.disconnect()
                 timers.append(threading.Timer(2.0, robot.odometry.reconnect))
                 timers[-1].start()
+            if switch.is_set():
+                switch.clear()
+                log.warning("sim: switching the lights to %s (SIGUSR2)", args.switch_lighting)
+                threading.Thread(target=robot.switch_lighting, args=(args.switch_lighting,),
+                                 name="light-switch", daemon=True).start()
             if args.stats_period and time.monotonic() >= next_report:
                 next_report += args.stats_period
                 log.info("sim: %s, truth %s", json.dumps(robot.stats()), json.dumps(truth_stats))
@@ -262,6 +273,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--world", help="world name (config/worlds/<name>.json) or path (default office)"
     )
     p.add_argument("--lighting", help="lighting setup: tube, bulb, natural (default tube)")
+    p.add_argument(
+        "--switch-lighting",
+        default="bulb",
+        metavar="NAME",
+        help="the lighting SIGUSR2 switches to while running (default bulb)",
+    )
     p.add_argument(
         "--scene-changes",
         metavar="A,B",
@@ -315,7 +332,8 @@ The first line on stdout is one JSON object naming the devices:
    "camera": "tcp://127.0.0.1:PORT", "truth": "tcp://127.0.0.1:PORT2", "world": ..., "pid": ...}
 camera: ZeroMQ PUB of [b"frame", header JSON, left, right] (drivers.sim.frame_transport);
 truth: ZeroMQ PUB of [b"truth", TruthMessage JSON] at 50 Hz. Logs go to stderr.
-SIGUSR1 unplugs the odometry board for 2 s. Negative numbers: --start=-1,2,0.
+SIGUSR1 unplugs the odometry board for 2 s; SIGUSR2 switches the lights to --switch-lighting.
+Negative numbers: --start=-1,2,0.
 """
 
 
