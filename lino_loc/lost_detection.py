@@ -68,6 +68,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 
+def independent_views(delta: ArrayLike, view_xy: float, view_theta: float) -> float:
+    """How much of an independent view one frame is: min(1, |dxy| / view_xy + |dtheta| /
+    view_theta) for the odometry increment (dx, dy, dtheta) since the previous frame (poses
+    closer than the sensor model's kernel widths are not told apart by it)."""
+    d = np.asarray(delta, dtype=np.float64).reshape(3)
+    return min(1.0, math.hypot(float(d[0]), float(d[1])) / view_xy + abs(float(d[2])) / view_theta)
+
+
 @dataclass
 class LostDetector:
     """Page's CUSUM on hits and misses of the belief (see the module docstring)."""
@@ -145,9 +153,7 @@ class LostDetector:
         (nats; -inf or nan: a miss), ``delta`` the odometry increment (dx, dy, dtheta) since
         the last one; ``learn``: the belief is trusted (tracking), so its hits and misses
         teach rho. Returns whether the belief is lost."""
-        d = np.asarray(delta, dtype=np.float64).reshape(3)
-        v = min(1.0, math.hypot(float(d[0]), float(d[1])) / self.view_xy
-                + abs(float(d[2])) / self.view_theta)
+        v = independent_views(delta, self.view_xy, self.view_theta)
         if v <= 0.0:
             return self.lost
         hit = bool(excess > self.hit_nats)  # nan: a miss

@@ -67,7 +67,7 @@ from lino_loc.apf import StepResult, apf_step, normalize
 from lino_loc.appearance_change import AppearanceChangeDetector
 from lino_loc.errors import LinoLocError
 from lino_loc.kidnap_recovery import KidnapRecovery, outlier_floor
-from lino_loc.lost_detection import LostDetector
+from lino_loc.lost_detection import LostDetector, independent_views
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pose_estimate import (
     PoseEstimate,
@@ -238,7 +238,8 @@ class FilterConfig(BaseModel):
         "evidence of an appearance change",
     )
     appearance_change_evidence: float = Field(
-        8.0, gt=0.0, description="CUSUM evidence (log-novelty units) for an appearance change"
+        5.0, gt=0.0, description="CUSUM evidence (log-novelty x independent views) for an "
+        "appearance change"
     )
     seed: int | None = None
 
@@ -471,7 +472,9 @@ class AuxiliaryParticleFilter(KidnapRecovery):
         self.last_log_likelihood = ll
         fam = self.familiarity(mixture.novelty)
         floor = outlier_floor(mixture)
-        if self.appearance_watch is not None and self.appearance_watch.update(mixture.novelty):
+        if self.appearance_watch is not None and self.appearance_watch.update(
+            mixture.novelty, independent_views(d, self.config.lost_view_xy, self.config.lost_view_theta)
+        ):
             self._appearance_changed()
         self._track_likelihood(ll, fam, floor)
         self.lost_detector.update(

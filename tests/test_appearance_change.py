@@ -18,18 +18,34 @@ from test_particle_filter import _drive, _filter, _synthetic_model  # noqa: E402
 
 
 def test_a_step_in_novelty_is_found_after_the_closed_form_delay() -> None:
-    """Novelty 1 then 2, no noise. The level is learnt only in control: the first changed
-    view still teaches it (no evidence stood before it), mu = 0.01 log 2, then it stays while
-    the evidence builds: S_n = (log 2 - log 1.65) + (n - 1)(log 2 - mu - log 1.65), which
-    passes 8 at the 44th view."""
-    det = AppearanceChangeDetector(ratio=1.65, evidence=8.0, alpha=0.01)
+    """Novelty 1 then 2, no noise, one independent view per call. The level is learnt only in
+    control: the first changed view still teaches it (no evidence stood before it), mu = alpha
+    log 2, then it stays while the evidence builds: S_n = (log 2 - log 1.65) + (n - 1)(log 2 -
+    mu - log 1.65), which passes 5 at the 32nd view."""
+    det = AppearanceChangeDetector(ratio=1.65, evidence=5.0, alpha=0.05)
     assert not any(det.update(1.0) for _ in range(200))
     fired = [k for k in range(200) if det.update(2.0)]
-    step, mu = math.log(2.0) - math.log(1.65), 0.01 * math.log(2.0)
-    n = 1 + math.floor((8.0 - step) / (step - mu)) + 1  # first n with S_n > 8
-    assert n == 44 and fired == [n - 1]
+    step, mu = math.log(2.0) - math.log(1.65), 0.05 * math.log(2.0)
+    n = 1 + math.floor((5.0 - step) / (step - mu)) + 1  # first n with S_n > 5
+    assert n == 32 and fired == [n - 1]
     # then it restarts at the new level: no second alarm on the plateau
     assert det.changes == 1 and det.level == pytest.approx(math.log(2.0))
+
+
+def test_evidence_counts_independent_views_not_frames() -> None:
+    """The same doubling seen in frames of a quarter view each (a robot moving slowly, a fast
+    camera) needs about four times as many frames (a little fewer: the first changed frame
+    teaches the level a quarter as much); counting frames it would need as many."""
+    whole, quarter = AppearanceChangeDetector(), AppearanceChangeDetector()
+    for det, v in ((whole, 1.0), (quarter, 0.25)):
+        for _ in range(200):
+            det.update(1.0, v)
+    k_whole = next(k for k in range(1000) if whole.update(2.0, 1.0))
+    k_quarter = next(k for k in range(1000) if quarter.update(2.0, 0.25))
+    assert 3 * k_whole <= k_quarter <= 4 * k_whole + 4
+    still = AppearanceChangeDetector()
+    still.update(1.0)
+    assert not any(still.update(10.0, 0.0) for _ in range(100))  # a robot standing still: no views
 
 
 def test_less_novel_views_and_missing_novelty_are_not_changes() -> None:

@@ -6,7 +6,7 @@ tests/test_daemon_integration.py (same configuration and cached map). After the 
 the scene for a while under the mapping light, SIGUSR2 makes the simulator switch the lights
 to ``bulb`` (it re-bakes the lighting; the camera keeps streaming). Asserted: the daemon's
 filter finds the change of the scene's appearance (``appearance_changes`` in ``status``, and
-the INFO line in its log) within 20 s, and keeps publishing poses.
+the INFO line in its log) within 30 s, and keeps publishing poses.
 
 How well it localizes afterwards is not asserted here: under bulb light this small map (5
 features of 80 x 60 plain images) tracks poorly whatever the filter does (measured twice, 40 s
@@ -65,13 +65,13 @@ def test_daemon_reports_the_lights_switched_and_keeps_publishing(tmp_path: Path)
         before = _status(rep)["appearance_changes"]
         sim.send_signal(signal.SIGUSR2)
         t_switch = time.time()
-        deadline = t_switch + 20.0
+        deadline = t_switch + 30.0
         changes = before
         while time.time() < deadline and changes <= before:
             time.sleep(0.5)
             changes = _status(rep)["appearance_changes"]
         assert changes >= before + 1, (
-            "no appearance change reported 20 s after the lights were switched; daemon log:\n"
+            "no appearance change reported 30 s after the lights were switched; daemon log:\n"
             + log.read_text()[-2000:])
         assert "lighting switched to bulb" in (tmp_path / "sim.log").read_text()
         assert "relearns what they look like" in log.read_text()
