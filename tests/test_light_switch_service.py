@@ -9,8 +9,8 @@ filter finds the change of the scene's appearance (``appearance_changes`` in ``s
 the INFO line in its log) within 30 s, and keeps publishing poses.
 
 How well it localizes afterwards is not asserted here: under bulb light this small map (5
-features of 80 x 60 plain images) tracks poorly whatever the filter does (measured twice, 40 s
-after the switch: 1.7 m with the detector, 2.4 m without). The lab figures of
+features of 80 x 60 plain images) tracks poorly whatever the filter does (one run each, 40 s
+after the switch: 1.25 m with the detector, found within 5 s; 2.4 m without). The lab figures of
 `lino-loc eval tracking` (``light_switch``: 4.31 -> 0.31 m) are the measure of what the
 relearning buys.
 """
