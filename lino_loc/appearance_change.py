@@ -34,8 +34,9 @@ under tube, bulb or natural light alone, nor in 2.5 min of the office service; `
 (3 s) raised four alarms under natural light (daylight changes the views by place) and one a
 minute in the office service. A clean doubling of the novelty takes 32 views.
 A drop in novelty (lights back to the mapping light) is not a change it reports: the views fit
-better, neither check is misled. Chosen on one simulated lab; ``ratio`` is relative to the
-map's own spacing, so it transfers between maps, the evidence is a number of frames' worth.
+better, neither check is misled. Chosen in simulation only; ``ratio`` is relative to the map's
+own spacing, so it transfers between maps, the evidence is a number of independent views'
+worth, so it does not depend on the frame rate.
 
 Usage::
 
@@ -60,10 +61,6 @@ class AppearanceChangeDetector:
     score: float = field(default=0.0, init=False)  # S_t
     level: float = field(default=math.nan, init=False)  # mu_t, log-novelty
     changes: int = field(default=0, init=False)
-
-    def reset(self) -> None:
-        self.score = 0.0
-        self.level = math.nan
 
     def update(self, novelty: float, views: float = 1.0) -> bool:
         """One observation's novelty (nan or non-positive: ignored) and how much of an

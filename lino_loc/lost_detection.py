@@ -44,10 +44,10 @@ at frame 300), ``threshold`` 12:
 The w_fast / w_slow rule gave 1 / 25 / 69 % from a known start. Threshold 10: natural 6 % /
 19 %, a kidnapping under tube light lost after 18 frames; threshold 15: 0 % / 6 %, 31 frames.
 Its limit: under changed light the views say too little (or, aliased, the wrong thing) to tell
-a wrong belief from a correct one within a drive. (Figures of the test alone. When the views
-become less familiar all at once, lights switched, ``lino_loc.appearance_change`` makes it
-forget the learnt rho, :meth:`LostDetector.appearance_changed`: under natural light that
-happens where the drive reaches the windows, and the 4 % above became 0 %.)
+a wrong belief from a correct one within a drive. When the views become less familiar all at
+once (lights switched), ``lino_loc.appearance_change`` makes it forget the learnt rho
+(:meth:`LostDetector.appearance_changed`); on the lab drive under one light that never happens,
+so the figures above stand.
 
 A converged belief is reported ``tracking`` only once the views have confirmed it
 (:attr:`LostDetector.confirmed`, ``confirm_views`` views' worth of hits); until then it is

@@ -205,7 +205,6 @@ class SimRobot:
         self.config = c = config or SimRobotConfig()
         self.world = world if world is not None else load_world(c.world)
         self.world.check_lighting(c.lighting)
-        self.lighting = c.lighting  # the lights now (switch_lighting changes them)
         self.scene_changes = self.world.check_changes(c.scene_changes)
         self.on_truth = on_truth
         self.on_frame = on_frame
@@ -512,7 +511,6 @@ class SimRobot:
         self.world.check_lighting(lighting)
         renderer = Renderer(self.world, self.camera_model, lighting, self.scene_changes, seed=self.config.seed)
         self.renderer = renderer
-        self.lighting = lighting
         log.info("sim robot: lighting switched to %s", lighting)
 
     # camera --------------------------------------------------------------------------------------
