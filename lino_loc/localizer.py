@@ -11,7 +11,7 @@ It owns the appearance map's sensor models (one nearest-neighbour model per chan
    ``fusion.j_disparity``);
 3. runs one filter update with the odometry increment and the head's pan angle (the mixture
    lives in camera poses, the particles are robot poses);
-4. returns the :class:`Estimate` of the robot pose.
+4. returns the :class:`lino_loc.pose_estimate.Estimate` of the robot pose, stamped.
 
 The map is duck-typed (the real one is ``lino_loc.appearance_map.AppearanceMap``): it needs
 ``poses`` (N, 3) camera poses and ``channels``, a mapping from channel name ("intensity",
@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -38,7 +38,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from lino_loc.errors import LinoLocError
 from lino_loc.fusion import FusionConfig, fuse
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
-from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig, FreeSpace, State
+from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig, FreeSpace
+from lino_loc.pose_estimate import Estimate
 from lino_loc.sensor_model import (
     Bounds,
     NearestNeighbourSensorModel,
@@ -70,35 +71,6 @@ class LocalizerConfig(BaseModel):
     sensor: SensorModelConfig = Field(default_factory=SensorModelConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     fusion: FusionConfig = Field(default_factory=FusionConfig)
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """What one update returns: the robot pose in the map frame and how sure we are."""
-
-    stamp: float | None
-    pose: FloatArray  # (3,) x, y, theta of the robot
-    covariance: FloatArray  # (3, 3)
-    ess: float
-    n_particles: int
-    state: State
-    likelihood: float  # predictive log-likelihood of the last observation (nan: none)
-    cluster_weight: float = math.nan
-    doubt: float = 0.0  # evidence that the views no longer fit the belief, 1 = lost (lino_loc.lost_detection)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary (lists instead of arrays; nan likelihood becomes None)."""
-        return {
-            "stamp": self.stamp,
-            "pose": [float(v) for v in self.pose],
-            "covariance": [[float(v) for v in row] for row in self.covariance],
-            "ess": float(self.ess),
-            "n_particles": int(self.n_particles),
-            "state": self.state,
-            "likelihood": None if not math.isfinite(self.likelihood) else float(self.likelihood),
-            "cluster_weight": float(self.cluster_weight),
-            "doubt": float(self.doubt),
-        }
 
 
 class Localizer:
@@ -138,7 +110,6 @@ class Localizer:
             free_space=free_space,
             rng=seed_rng,
         )
-        self.last_mixture: PoseMixture | None = None
 
     # ----------------------------------------------------------------- observation
 
@@ -190,7 +161,6 @@ class Localizer:
         the last update, the head's pan angle (rad) at the frame's time, the image (None when
         the camera failed: prediction only) and the optional disparity map."""
         mixture = self.observe(image, disparity)
-        self.last_mixture = mixture
         self.filter.update(odometry_delta, float(pan), mixture)
         return self.estimate(stamp)
 
@@ -199,18 +169,8 @@ class Localizer:
         return self.update(odometry_delta, 0.0, None, None, stamp)
 
     def estimate(self, stamp: float | None = None) -> Estimate:
-        e = self.filter.estimate()
-        return Estimate(
-            stamp=stamp,
-            pose=e.pose,
-            covariance=e.covariance,
-            ess=e.ess,
-            n_particles=e.n_particles,
-            state=e.state,
-            likelihood=e.log_likelihood,
-            cluster_weight=e.cluster_weight,
-            doubt=float(self.filter.lost_detector.doubt),
-        )
+        """The filter's current estimate, stamped with ``stamp``."""
+        return replace(self.filter.estimate(), stamp=stamp)
 
     def set_pose(self, mean: ArrayLike, cov: ArrayLike) -> None:
         """Start tracking from a known robot pose with a Gaussian uncertainty."""
@@ -220,6 +180,28 @@ class Localizer:
         """Forget the pose: uniform belief over the mapped area and all headings."""
         self.filter.start_global()
 
+    # ----------------------------------------------------------------- read-only views
+
     def particles(self) -> tuple[FloatArray, FloatArray]:
-        """(robot poses (N, 3), normalized weights (N,)) for viewers."""
+        """(robot poses (N, 3), normalized linear weights (N,)), copies, for viewers."""
         return self.filter.particles.copy(), self.filter.weights
+
+    def belief(self) -> tuple[FloatArray, FloatArray]:
+        """(robot poses (N, 3), normalized log-weights (N,)): the filter's own arrays, for
+        readers such as active vision. Do not modify them; the next update replaces them."""
+        return self.filter.particles, self.filter.log_weights
+
+    @property
+    def appearance_changes(self) -> int:
+        """How many times the scene's appearance changed all at once (lights switched) since
+        the start (``lino_loc.appearance_change``); 0 when that watch is switched off."""
+        return self.filter.appearance_changes
+
+    def sensor_model(self, channel: str = "intensity") -> NearestNeighbourSensorModel:
+        """The nearest-neighbour sensor model (section 3) of one of the map's channels."""
+        try:
+            return self.models[channel]
+        except KeyError:
+            raise LinoLocError(
+                f"appearance map: no {channel!r} channel (has {sorted(self.models)})"
+            ) from None

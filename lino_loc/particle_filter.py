@@ -70,7 +70,7 @@ from lino_loc.kidnap_recovery import KidnapRecovery, outlier_floor
 from lino_loc.lost_detection import LostDetector, independent_views
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pose_estimate import (
-    PoseEstimate,
+    Estimate,
     State,
     cluster_labels,
     dominant_mode,
@@ -88,7 +88,7 @@ __all__ = [
     "AuxiliaryParticleFilter",
     "FilterConfig",
     "FreeSpace",
-    "PoseEstimate",
+    "Estimate",
     "State",
     "StepResult",
     "apf_step",
@@ -632,10 +632,15 @@ class AuxiliaryParticleFilter(KidnapRecovery):
     def state(self) -> State:
         return self._state
 
-    def estimate(self) -> PoseEstimate:
-        """Dominant mode: weighted mean (circular theta), covariance, ESS and state."""
+    @property
+    def appearance_changes(self) -> int:
+        """Appearance changes detected since construction (0 when the watch is off)."""
+        return self.appearance_watch.changes if self.appearance_watch is not None else 0
+
+    def estimate(self) -> Estimate:
+        """Dominant mode: weighted mean (circular theta), covariance, ESS, state and doubt."""
         mean, cov, mass = self._dominant()
-        return PoseEstimate(
+        return Estimate(
             pose=mean,
             covariance=cov,
             ess=self.ess(),
@@ -643,4 +648,5 @@ class AuxiliaryParticleFilter(KidnapRecovery):
             state=self._state,
             cluster_weight=mass,
             log_likelihood=float(self.last_log_likelihood),
+            doubt=float(self.lost_detector.doubt),
         )

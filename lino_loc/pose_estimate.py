@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -157,8 +157,18 @@ def dominant_mode(
 
 
 @dataclass(frozen=True)
-class PoseEstimate:
-    """The filter's estimate: dominant mode, its covariance, and how much to trust it."""
+class Estimate:
+    """The robot pose in the map frame and how much to trust it: the one estimate type of the
+    filter, the Localizer and the service (``services.messages.PoseMessage.from_estimate``).
+
+    ``pose`` and ``covariance`` are the dominant mode's weighted mean (circular mean for theta)
+    and covariance over (x, y, theta); ``cluster_weight`` is that mode's share of the weight
+    (1 when the cloud is compact); ``log_likelihood`` the predictive log-likelihood of the last
+    observation, log p(y_t | y_1..t-1) (nan before the first one); ``doubt`` the evidence that
+    the views no longer fit the belief as a fraction of the lost threshold (0 = they fit,
+    1 = lost; ``lino_loc.lost_detection``); ``stamp`` the time of the frame it answers (s, None
+    when the caller gave none).
+    """
 
     pose: FloatArray  # (3,) robot pose
     covariance: FloatArray  # (3, 3) over (x, y, theta)
@@ -167,3 +177,20 @@ class PoseEstimate:
     state: State
     cluster_weight: float  # weight of the dominant cluster, in [0, 1]
     log_likelihood: float  # last observation's predictive log-likelihood (nan if none yet)
+    doubt: float = 0.0
+    stamp: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary (lists instead of arrays; a nan likelihood becomes None)."""
+        ll = self.log_likelihood
+        return {
+            "stamp": self.stamp,
+            "pose": [float(v) for v in self.pose],
+            "covariance": [[float(v) for v in row] for row in self.covariance],
+            "ess": float(self.ess),
+            "n_particles": int(self.n_particles),
+            "state": self.state,
+            "log_likelihood": float(ll) if math.isfinite(ll) else None,
+            "cluster_weight": float(self.cluster_weight),
+            "doubt": float(self.doubt),
+        }

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -57,7 +56,8 @@ import zmq
 from drivers.interfaces import DeviceHealth, HealthState
 from lino_loc import __version__
 from lino_loc.errors import LinoLocError
-from lino_loc.localizer import Estimate, Localizer
+from lino_loc.localizer import Localizer
+from lino_loc.pose_estimate import Estimate
 from services import sd_notify
 from services.config import ServiceConfig
 from services.control import CommandQueue, ControlServer
@@ -79,7 +79,6 @@ from services.messages import (
     MapInfo,
     ParticlesMessage,
     PingReply,
-    Pose2D,
     PoseMessage,
     SaveStateReply,
     StatusMessage,
@@ -163,7 +162,7 @@ def make_active_policy(cfg: ServiceConfig, localizer: Localizer, head_limits: An
     # The daemon switches active vision on and off itself (``av_enabled``, the control
     # socket's set_active_vision); the policy it calls must always decide.
     av = cfg.active_vision.model_copy(update={"enabled": True})
-    model = localizer.models["intensity"]
+    model = localizer.sensor_model("intensity")
     limits = None
     if head_limits is not None:
         limits = (float(head_limits.pan_min), float(head_limits.pan_max))
@@ -437,8 +436,7 @@ class Daemon:
         self._active_vision(est, stamp)
 
     def appearance_changes(self) -> int:
-        watch = self.localizer.filter.appearance_watch
-        return watch.changes if watch is not None else 0
+        return self.localizer.appearance_changes
 
     def _note_appearance_change(self) -> None:
         n = self.appearance_changes()
@@ -467,21 +465,10 @@ class Daemon:
 
     def _publish_pose(self, est: Estimate, stamp: float, pan: float | None) -> None:
         assert self.publisher is not None
-        cov = np.asarray(est.covariance, dtype=np.float64)
-        cov = 0.5 * (cov + cov.T)
         self.seq += 1
         try:
-            msg = PoseMessage(
-                stamp=stamp,
-                seq=self.seq,
-                pose=Pose2D(x=float(est.pose[0]), y=float(est.pose[1]), theta=float(est.pose[2])),
-                covariance=[float(v) for v in cov.reshape(-1)],
-                state=est.state,
-                pan=pan,
-                ess=float(est.ess) if math.isfinite(est.ess) else None,
-                n_particles=int(est.n_particles),
-                dead_reckoning=self.dead_reckoning,
-                latency_ms=max(0.0, (time.time() - stamp) * 1000.0),
+            msg = PoseMessage.from_estimate(
+                est, stamp=stamp, seq=self.seq, pan=pan, dead_reckoning=self.dead_reckoning
             )
         except ValueError as exc:
             log.warning("pose not published (invalid estimate): %s", exc)
@@ -529,12 +516,13 @@ class Daemon:
         state = self.heads.latest()
         if head is None or state is None:
             return
+        particles, log_weights = self.localizer.belief()
         try:
             d = self.policy.decide(
-                self.localizer.filter.particles,
-                self.localizer.filter.log_weights,
+                particles,
+                log_weights,
                 state=est.state,
-                log_likelihood=est.likelihood,
+                log_likelihood=est.log_likelihood,
                 pan=state.pan,
                 moving=state.moving,
                 now=time.time(),

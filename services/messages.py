@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
@@ -50,6 +51,7 @@ from pydantic import (
     model_validator,
 )
 
+from lino_loc.pose_estimate import Estimate
 from lino_loc.poses import wrap_angle
 
 #: Version of the wire protocol (the "v" field, and the schema $id).
@@ -170,6 +172,36 @@ class PoseMessage(_Published):
     latency_ms: NonNegative | None = Field(
         None, description="from the frame's capture to publication, milliseconds"
     )
+
+    @classmethod
+    def from_estimate(
+        cls,
+        est: Estimate,
+        *,
+        stamp: float,
+        seq: int,
+        pan: float | None,
+        dead_reckoning: bool = False,
+        now: float | None = None,
+    ) -> PoseMessage:
+        """The message of one filter estimate: the covariance symmetrized, (C + C^T) / 2, and
+        flattened row-major; the latency from ``stamp`` to ``now`` (default: the clock).
+        Raises ``ValueError`` (pydantic's) when the estimate holds a non-finite value."""
+        cov = np.asarray(est.covariance, dtype=np.float64)
+        cov = 0.5 * (cov + cov.T)
+        now = time.time() if now is None else now
+        return cls(
+            stamp=stamp,
+            seq=seq,
+            pose=Pose2D(x=float(est.pose[0]), y=float(est.pose[1]), theta=float(est.pose[2])),
+            covariance=[float(v) for v in cov.reshape(-1)],
+            state=est.state,
+            pan=pan,
+            ess=float(est.ess) if math.isfinite(est.ess) else None,
+            n_particles=int(est.n_particles),
+            dead_reckoning=dead_reckoning,
+            latency_ms=max(0.0, (now - stamp) * 1000.0),
+        )
 
 
 class TruthMessage(_Published):

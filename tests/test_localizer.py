@@ -10,8 +10,9 @@ from pydantic import ValidationError
 
 from lino_loc.errors import LinoLocError
 from lino_loc.fusion import FusionConfig
-from lino_loc.localizer import Estimate, Localizer, LocalizerConfig
+from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.particle_filter import FilterConfig
+from lino_loc.pose_estimate import Estimate
 from lino_loc.poses import camera_pose, compose, wrap_angle
 from lino_loc.sensor_model import SensorModelConfig
 
@@ -136,8 +137,8 @@ def test_predict_only_moves_particles_and_keeps_weights() -> None:
     after, w_after = loc.particles()
     np.testing.assert_allclose(w_after, w_before)
     assert after[:, 0].mean() == pytest.approx(before[:, 0].mean() + 0.5, abs=0.03)
-    assert est.stamp == 5.0 and np.isnan(est.likelihood)
-    assert est.to_dict()["likelihood"] is None
+    assert est.stamp == 5.0 and np.isnan(est.log_likelihood)
+    assert est.to_dict()["log_likelihood"] is None
     est2 = loc.update([0.0, 0.0, 0.0], 0.0, None)  # camera failed
     assert est2.n_particles == 600
 
@@ -226,3 +227,18 @@ def test_non_finite_channel_is_skipped() -> None:
     mix = loc.observe(f_img(cam)[0], bad)  # disparity unusable: intensity alone, J = sensor.j
     assert mix is not None and mix.n_components == 10
     assert loc.observe(None, bad) is None
+
+
+def test_public_surface_belief_appearance_changes_and_sensor_model() -> None:
+    m, f_img, _ = _world()
+    loc = Localizer(m, _config())
+    est, _ = _run(loc, f_img, steps=5)
+    particles, log_weights = loc.belief()
+    poses, weights = loc.particles()
+    np.testing.assert_array_equal(particles, poses)
+    np.testing.assert_allclose(np.exp(log_weights), weights, rtol=1e-12)
+    assert loc.appearance_changes == 0
+    assert loc.sensor_model("intensity") is loc.models["intensity"]
+    with pytest.raises(LinoLocError, match="no 'disparity' channel"):
+        loc.sensor_model("disparity")
+    assert est.doubt == loc.estimate().doubt and loc.estimate(7.0).stamp == 7.0

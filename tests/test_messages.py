@@ -235,3 +235,19 @@ def test_status_reply_embeds_a_status_message():
 def test_error_reply_is_one_line():
     e = m.error_reply("bad\nthing   here", cmd="ping")
     assert e.error == "bad thing here" and e.cmd == "ping"
+
+
+def test_pose_message_from_estimate_symmetrizes_and_times():
+    from lino_loc.pose_estimate import Estimate
+
+    cov = np.array([[0.04, 0.011, 0.0], [0.009, 0.09, 0.0], [0.0, 0.0, 0.01]])
+    est = Estimate(pose=np.array([1.0, 2.0, 0.5]), covariance=cov, ess=412.0, n_particles=1000,
+                   state="tracking", cluster_weight=1.0, log_likelihood=-3.0)
+    msg = m.PoseMessage.from_estimate(est, stamp=100.0, seq=3, pan=0.2, now=100.25)
+    assert msg.covariance[1] == msg.covariance[3] == pytest.approx(0.01)
+    assert (msg.pose.x, msg.pose.y, msg.pose.theta) == (1.0, 2.0, 0.5)
+    assert msg.latency_ms == pytest.approx(250.0) and msg.seq == 3 and msg.pan == 0.2
+    bad = Estimate(pose=np.array([math.nan, 2.0, 0.5]), covariance=cov, ess=1.0, n_particles=1,
+                   state="tracking", cluster_weight=1.0, log_likelihood=-3.0)
+    with pytest.raises(ValueError):
+        m.PoseMessage.from_estimate(bad, stamp=100.0, seq=4, pan=None)
