@@ -482,7 +482,14 @@ class SensorModelConfig(BaseModel):
 
 
 def lambda_log_weights(dist2: ArrayLike, scale: str = "median", factor: float = 1.0) -> FloatArray:
-    """log lambda_j = log softmax(-d_j^2 / (2 s^2)) over the last axis (see module docstring)."""
+    """log lambda_j = log softmax_j(-d_j^2 / (2 s^2)) over the last axis (see module docstring).
+
+    ``dist2`` are squared feature distances (..., J); s^2 = ``factor``^2 times their median
+    (``scale="median"``, the mean of the two middle values for even J) or their minimum
+    (``"nearest"``); ``"uniform"`` gives log(1/J). A zero scale (an exact match) falls back to
+    the largest distance, and all-zero distances give uniform weights. ValueError on an
+    unknown ``scale``.
+    """
     d2 = np.asarray(dist2, dtype=np.float64)
     if d2.ndim == 1 and d2.size and scale != "uniform":
         return _lambda_log_weights_1d(d2, scale, factor)
@@ -671,9 +678,9 @@ class NearestNeighbourSensorModel:
     ) -> FloatArray:
         """log p(y_b | x_m) for many observations at once: y (B, d), camera poses (M, 3) -> (B, M).
 
-        Row b equals ``self.observe(y[b], j).log_pdf(camera_poses)``; vectorized for the
-        active-vision search (the entropy H(u) of the paper's section 4), which needs the
-        sensor model of every predicted observation at every particle.
+        Row b equals ``self.observe(y[b], j).log_pdf(camera_poses)`` up to round-off;
+        vectorized for the active-vision search (the entropy H(u) of the paper's section 4),
+        which needs the sensor model of every predicted observation at every particle.
         """
         c = self.config
         idx, d2 = self.neighbours(y, j)
