@@ -4,7 +4,7 @@ An :class:`AppearanceMap` holds the N camera poses ``x_i`` of a survey and, per 
 *channel*, the projection ``W`` (mean + components) and the N feature vectors
 ``y_i = W (z_i - mean)`` (eq. 1). The ``intensity`` channel is the paper's image channel
 (preprocessing ``none`` / ``histeq`` / ``gradient``, see :mod:`lino_loc.preprocessing`); the
-``disparity`` channel (section 5, issue 7) holds a PCA fitted by EM with missing data
+``disparity`` channel (paper, section 5) holds a PCA fitted by EM with missing data
 (:mod:`lino_loc.pca_missing`) and projects sparse maps from their valid pixels alone.
 
 Channels plug in through :class:`ChannelKind` (see :func:`register_channel_kind`): a kind
@@ -22,8 +22,8 @@ model wants features that vary smoothly with pose, sections 3 and 6.1); and the 
 few (5-20) leading components only carry coarse structure anyway. Projecting a frame then
 costs d x D = 96 000 multiply-adds. The size is stored in the map and used at query time.
 
-Map file (design.md 4.3, a contract). One uncompressed ``.npz`` (``np.savez``, read back with
-``allow_pickle=False``), loadable without the dataset:
+Map file (a contract; docs/datasets.md describes it for users). One uncompressed ``.npz``
+(``np.savez``, read back with ``allow_pickle=False``), loadable without the dataset:
 
 - ``header``: UTF-8 JSON (a uint8 array) validated as :class:`MapHeader`: magic
   ``"lino-loc-map"``, ``format_version`` (1), ``sha256`` over all other arrays, creation
@@ -181,6 +181,7 @@ def register_channel_kind(kind: ChannelKind) -> None:
 
 
 def get_channel_kind(name: str) -> ChannelKind:
+    """The registered channel kind called name; LinoLocError naming the known kinds otherwise."""
     try:
         return _KINDS[name]
     except KeyError:
@@ -221,7 +222,7 @@ def _pca_from_arrays(a: Mapping[str, np.ndarray], params: Mapping[str, ParamValu
 register_channel_kind(ChannelKind("intensity", _intensity_project, _pca_to_arrays, _pca_from_arrays))
 
 
-# ---- disparity (issue 7): EM-PCA with missing data; modules imported on use
+# ---- disparity (paper, section 5): EM-PCA with missing data; modules imported on use
 def _disparity_project(ch: ChannelMap, disparity: np.ndarray) -> np.ndarray:
     from lino_loc.disparity import downsample_sparse
 
@@ -524,8 +525,10 @@ def load_vectors(
 
     Files are decoded straight to grey (``cv2.IMREAD_GRAYSCALE``) by a thread pool
     (OpenCV releases the GIL; default 4 threads, at most 2 per core), in chunks written
-    into one preallocated matrix. PNG decoding is most of the cost (about 1 ms per
-    320 x 240 image); the preprocessing adds 0.1 (none) to 1-2 ms (gradient).
+    into one preallocated matrix (PNG decoding is most of the cost; see docs/results.md,
+    'Map build'). ``workers`` <= 1 or a single chunk: no pool. ``progress(done, total)`` is
+    called after every chunk. An exception in a worker cancels the chunks not yet started
+    and is re-raised.
     """
     n = len(dataset)
     w, h = int(size[0]), int(size[1])

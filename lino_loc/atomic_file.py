@@ -18,6 +18,10 @@ from typing import IO, Any
 
 @contextlib.contextmanager
 def atomic_write(path: str | Path, mode: str = "wb", sync_folder: bool = False, **open_kwargs: Any) -> Iterator[IO[Any]]:
+    """Open a temporary file next to path in mode; on a clean exit flush, fsync and rename it
+    over path (then, with sync_folder, fsync the folder, best effort). On an exception the
+    temporary file is removed, path is untouched and the exception propagates.
+    """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)

@@ -1,4 +1,4 @@
-"""Dataset folders: a survey of images at known camera poses (design.md 4.2, a contract).
+"""Dataset folders: a survey of images at known camera poses (a contract, see docs/datasets.md).
 
 A dataset folder holds::
 

@@ -45,10 +45,9 @@ class StereoConfig(BaseModel):
     The defaults are the product's: tuned for 320 x 240 and 640 x 400 grey pairs (OAK-D
     geometry: 7.5 cm baseline, f about 440 px at 640 x 400, so 64 disparities reach
     about 0.5 m at 640 x 400 and 0.25 m at 320 x 240) and checked on the Middlebury
-    "Motorcycle" pair with ``lino-loc eval stereo`` (741 x 500, ``--max-disparity 60``:
-    density 0.769, bad1 0.061, bad2 0.044, rmse 3.55 px; guarded by
-    tests/test_stereo_eval.py). ``texture_threshold`` is OpenCV's: a sum over the window of
-    the pre-filtered response, so it scales with ``block_size ** 2``.
+    "Motorcycle" pair with ``lino-loc eval stereo`` (figures in docs/results.md, 'Stereo on
+    real images'; guarded by tests/test_stereo_eval.py). ``texture_threshold`` is OpenCV's:
+    a sum over the window of the pre-filtered response, so it scales with ``block_size ** 2``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)

@@ -73,7 +73,13 @@ def _from_unnormalized(
 
 
 def disjunctive(mixtures: list[PoseMixture], weights: list[float]) -> PoseMixture:
-    """Eq. 8: sum_c w_c p_c(x) with sum_c w_c = 1 (weights are normalized here)."""
+    """Eq. 8: sum_c w_c p_c(x) with sum_c w_c = 1 (weights are normalized here).
+
+    The components (and outlier weights) of every channel with w_c > 0 are concatenated with
+    their log-weights shifted by log w_c + the channel's ``log_scale``; the total weight goes to
+    the result's ``log_scale`` and the outlier uses the first channel's bounds. ValueError for
+    no mixtures, a weight count that differs, a negative weight or all weights zero.
+    """
     if len(mixtures) != len(weights) or not mixtures:
         raise ValueError("need one weight per mixture")
     w = np.asarray(weights, dtype=np.float64)
@@ -169,7 +175,8 @@ def conjunctive(mixtures: list[PoseMixture]) -> PoseMixture:
 def fuse(mixtures: dict[str, PoseMixture], config: FusionConfig | None = None) -> PoseMixture:
     """Combine channel mixtures ("intensity", "disparity") as configured (eq. 7 or eq. 8).
 
-    A single channel is returned unchanged.
+    A single channel is returned unchanged. Disjunctive weights are ``w_d`` for
+    "disparity", ``w_i`` for "intensity" and 1 for any other name, normalized to sum to one.
     """
     c = config or FusionConfig()
     if len(mixtures) == 1:

@@ -19,7 +19,7 @@
   In both, ties (a pose exactly between two map entries) count as correct when both nearest
   sets share an entry.
 * :func:`sensor_model_error` - eq. 10, ``e = min_n |r - n|`` over the J map poses that define
-  the sensor model, as the POSITION distance in metres (issue 3 / Fig. 5 report metres).
+  the sensor model, as the POSITION distance in metres (as the paper's Fig. 5 reports it).
 * :func:`ate_rmse` - absolute trajectory error (RMSE of position errors, metres, in the map
   frame: no alignment since both trajectories live in the map frame), and
   :func:`heading_rmse` (radians, differences wrapped).

@@ -25,7 +25,8 @@ filter's jitter (roughening, Gordon, Salmond, Smith 1993; Musso, Oudjane, Le Gla
 kept in the action model so that the APF's two stages stay exact: the first stage still
 uses the noise-free mean, the second divides by it. Its cost: a still robot's belief
 diffuses by sqrt(k) * min_sigma_xy after k updates unless images pin it (1 cm: 10 cm after
-100 updates), which the sensor model's 35 cm kernels do not notice. Two cases the textbook leaves open:
+100 updates), which the sensor model's 35 cm kernels do not notice. Two cases the textbook
+leaves open:
 
 * pure rotation (``trans < min_trans``): the direction of travel is undefined, so
   ``rot1 = 0`` and ``rot2 = dtheta`` (otherwise atan2 of noise would inject a spurious turn);
@@ -117,7 +118,7 @@ class OdometryMotionModel:
         self, delta: ArrayLike
     ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """(rot1, trans, rot2) of one increment (3,) and their noise variances: :func:`decompose`
-        in scalar arithmetic (numpy on three scalars cost ~60 us per update)."""
+        in scalar arithmetic (numpy's per-call overhead dominates on three scalars)."""
         c = self.config
         dx, dy, dth = (float(v) for v in np.asarray(delta, dtype=np.float64).reshape(3))
         t = math.hypot(dx, dy)
@@ -176,7 +177,7 @@ class OdometryMotionModel:
 
         The same distribution as perturbing (rot1, trans, rot2) and adding the floor, drawn with
         four normals per particle instead of six, in one generator call (only for the parts
-        whose spread is not zero; the normals were a third of the update's cost):
+        whose spread is not zero; drawing normals is a large share of an update's cost):
 
         * the rot2 noise and the heading floor both act on the final heading only: one normal
           of variance var(rot2) + min_sigma_theta^2;

@@ -22,20 +22,13 @@ Three ways to compute ``W`` from the centred data ``Xc = X - mean``:
 ``svd``
     numpy's full thin SVD of Xc: the reference, O(N D min(N, D)).
 
-Why randomized is the default (``benchmarks/bench_map_build.py --blas-threads 1``, on
-the 2-core development machine while other jobs kept its load average at 6-11, so wall
-times are 2-4x the CPU times): for N = 4000 x D = 4800 synthetic low-rank + noise data it
-needed 0.8-1.0 CPU s (median wall 2.8-3.5 s) and 18 MB of extra memory, the Gram route
-12 CPU s (wall 31 s) and 320 MB, numpy's full SVD 193 s wall. On the rendered lab survey
-(4500 x 4800): randomized 1.0 CPU s and 21 MB, Gram 17 CPU s and 394 MB. The Gram route
-is exact, but its O(N^3) eigen-solve alone would take most of the 15 s budget of the lab
-map build. Accuracy on the rendered lab survey (4500 images, 80 x 60, d = 20, against the exact
-subspace): the first 10 directions agree to < 4e-3 rad for every preprocessing, the
-captured variance is >= 99.97 % of the exact top-20 variance, and pairwise feature
-distances (what the sensor model uses) differ by < 0.02 % (none, histeq) and < 1.5 %
-(gradient, whose spectrum is the flattest: lambda_20 / lambda_1 = 0.2). Appearance
-spectra decay slowly, which is why the oversampling and the power iterations are larger
-than the textbook p = 10, q = 2 (with them the gradient distances were off by 16 %).
+Why randomized is the default: on a survey-sized problem (N and D in the thousands) it
+needs a small fraction of the Gram route's time and memory and keeps the leading subspace
+to well within what the sensor model notices (feature distances, captured variance); the
+Gram route is exact, but its O(N^3) eigen-solve alone would take most of a map build's time
+budget (figures in docs/results.md, 'Map build'). Appearance spectra decay slowly, which is
+why the oversampling and the power iterations are larger than the textbook p = 10, q = 2,
+which distort the flattest spectrum's (``gradient``) feature distances noticeably.
 
 ``explained_variance[k]`` is the variance of the k-th feature over the map images,
 ``s_k^2 / N``. Signs are made deterministic: the largest-magnitude coefficient of each
@@ -60,7 +53,10 @@ from lino_loc.errors import LinoLocError
 
 PcaMethod = Literal["randomized", "gram", "svd"]
 PCA_METHODS: tuple[str, ...] = get_args(PcaMethod)
-DEFAULT_OVERSAMPLES = 10  # plus n_components: the sketch has 2 d + 10 columns
+# Randomized SVD: oversampling (plus n_components: the sketch has 2 d + 10 columns) and power
+# iterations, both above the textbook values because appearance spectra decay slowly
+# (measured, docs/results.md 'Map build').
+DEFAULT_OVERSAMPLES = 10
 DEFAULT_POWER_ITERATIONS = 5
 
 

@@ -416,10 +416,10 @@ def fit_pca_missing(
     plain EM iterate is used. The fixed points (the ML estimate) are those of EM, and the
     recorded log-likelihood stays non-decreasing (up to rounding); with much of the data
     missing in blocks (disparity maps) EM converges linearly with a rate close to 1 and
-    SQUAREM reaches a given log-likelihood in several times fewer iterations (measured: 4x
-    on the block-missing test problem, 1.6x to the stopping rule on rendered lab disparity
-    maps). ``log_likelihood`` records the values at the accepted iterates. Deterministic for a given ``seed`` (used only by the randomized
-    initial SVD of large problems).
+    SQUAREM reaches a given log-likelihood in fewer iterations (see docs/results.md,
+    'EM-PCA with missing data'). ``log_likelihood`` records the values at the accepted
+    iterates. Deterministic for a given ``seed`` (used only by the randomized initial SVD of
+    large problems).
     """
     a = np.asarray(X)
     if a.ndim != 2:

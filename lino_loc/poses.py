@@ -12,13 +12,17 @@ FloatArray = NDArray[np.float64]
 
 
 def wrap_angle(angle: ArrayLike) -> FloatArray:
-    """Wrap angles to [-pi, pi)."""
+    """Wrap angles to [-pi, pi): ``(a + pi) mod 2 pi - pi`` (pi maps to -pi)."""
     a = np.asarray(angle, dtype=np.float64)
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def compose(pose: ArrayLike, delta: ArrayLike) -> FloatArray:
-    """pose (+) delta: apply an increment expressed in the frame of ``pose``."""
+    """pose (+) delta: apply an increment expressed in the frame of ``pose``.
+
+    ``(x + cos t dx - sin t dy, y + sin t dx + cos t dy, wrap(t + dt))``; broadcasts over
+    leading axes.
+    """
     p = np.asarray(pose, dtype=np.float64)
     d = np.asarray(delta, dtype=np.float64)
     c, s = np.cos(p[..., 2]), np.sin(p[..., 2])
@@ -29,7 +33,8 @@ def compose(pose: ArrayLike, delta: ArrayLike) -> FloatArray:
 
 
 def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
-    """The increment d with a (+) d = b, expressed in the frame of ``a``."""
+    """The increment d with a (+) d = b, expressed in the frame of ``a``: the position
+    difference rotated by -theta_a, and wrap(theta_b - theta_a)."""
     pa = np.asarray(a, dtype=np.float64)
     pb = np.asarray(b, dtype=np.float64)
     dx = pb[..., 0] - pa[..., 0]
@@ -53,7 +58,8 @@ def camera_pose(robot_pose: ArrayLike, pan: ArrayLike) -> FloatArray:
 
 
 def circular_mean(angles: ArrayLike, weights: ArrayLike | None = None) -> float:
-    """Weighted circular mean of angles (radians), in [-pi, pi)."""
+    """Weighted circular mean of angles (radians), in [-pi, pi): atan2(sum w sin a, sum w cos a)
+    (arbitrary when the weighted unit vectors cancel)."""
     a = np.asarray(angles, dtype=np.float64)
     w = np.ones_like(a) if weights is None else np.asarray(weights, dtype=np.float64)
     return float(wrap_angle(np.arctan2(np.sum(w * np.sin(a)), np.sum(w * np.cos(a)))))

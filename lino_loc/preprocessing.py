@@ -58,7 +58,8 @@ def _grey_u8(image: np.ndarray) -> np.ndarray:
 def preprocess(image: np.ndarray, method: Preprocess) -> np.ndarray:
     """Preprocess a uint8 image (grey, or BGR converted to grey) -> float32, same size.
 
-    See the module docstring for what each method does and why.
+    See the module docstring for what each method does and why. LinoLocError for an unknown
+    ``method``.
     """
     img = _grey_u8(image)
     if method == "none":
@@ -79,7 +80,8 @@ def preprocess(image: np.ndarray, method: Preprocess) -> np.ndarray:
 
 
 def to_vector(image_f32: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Area-average (``cv2.INTER_AREA``) to ``size = (w, h)`` and flatten row-major -> (w*h,) float32."""
+    """Area-average (``cv2.INTER_AREA``) to ``size = (w, h)`` and flatten row-major -> (w*h,)
+    float32; an image already of that size is only flattened."""
     w, h = int(size[0]), int(size[1])
     img = np.asarray(image_f32, dtype=np.float32)
     if img.shape[:2] != (h, w):

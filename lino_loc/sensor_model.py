@@ -59,7 +59,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 LOG_2PI = math.log(2.0 * math.pi)
-AUTO_KDTREE_MIN_ENTRIES = 2000  # below this brute force is always fast enough (< 0.1 ms)
+# Below this map size "auto" takes brute force without timing the tree (see docs/results.md).
+AUTO_KDTREE_MIN_ENTRIES = 2000
 
 
 def log_von_mises_norm(kappa: ArrayLike) -> FloatArray:
@@ -69,14 +70,16 @@ def log_von_mises_norm(kappa: ArrayLike) -> FloatArray:
 
 
 # Columns per block of a log-density evaluation, times the number of kernels: keeps the
-# (K, 6) @ (6, block) product below OpenBLAS's threading threshold (a threaded product took
-# 0.42 ms instead of 0.12 ms for 10 x 10000 on this shared 2-core machine, and up to 40 ms
-# under load) and a block's terms in the L2 cache.
+# (K, 6) @ (6, block) product below OpenBLAS's threading threshold (a threaded product of this
+# size is several times slower, see docs/results.md) and a block's terms in the L2 cache.
 _MATMUL_BLOCK = 32768
 # A shifted sum below this may have lost precision to subnormal exp() results: recompute.
 _TINY_SUM = 1e-280
-# Kernels whose terms stay this many nats below every pose's density are left out of a sum.
+# Kernels whose terms stay this many nats below every pose's density are left out of a sum
+# (relative change K exp(-40), below float64 round-off).
 _PRUNE_NATS = 40.0
+# Fewest poses for which the pruning bound is computed (it costs more than it saves on few
+# poses; see docs/results.md).
 _PRUNE_MIN_POSES = 500
 
 
@@ -115,6 +118,8 @@ class Bounds:
 
     @property
     def area(self) -> float:
+        """(x_max - x_min) (y_max - y_min) in m^2, each side floored at 1e-9 m (a degenerate
+        box keeps a finite density)."""
         return max(self.x_max - self.x_min, 1e-9) * max(self.y_max - self.y_min, 1e-9)
 
     @property
@@ -134,6 +139,7 @@ class Bounds:
         )
 
     def contains(self, xy: ArrayLike) -> NDArray[np.bool_]:
+        """True where the positions xy (..., >= 2; x, y first) lie in the box, edges included."""
         p = np.asarray(xy, dtype=np.float64)
         return (
             (p[..., 0] >= self.x_min)
@@ -144,6 +150,8 @@ class Bounds:
 
     @classmethod
     def from_poses(cls, poses: ArrayLike, margin: float = 0.0) -> Bounds:
+        """The smallest box holding every position of ``poses`` (N, >= 2), grown by ``margin``
+        metres on each side."""
         p = np.asarray(poses, dtype=np.float64)
         return cls(
             float(p[:, 0].min() - margin),
@@ -208,10 +216,12 @@ class PoseMixture:
 
     @property
     def n_components(self) -> int:
+        """K, the number of kernels (the outlier component not counted)."""
         return int(self.poses.shape[0])
 
     @property
     def kappa(self) -> FloatArray:
+        """von Mises concentrations kappa_k = 1 / sigma_theta_k^2 (K,)."""
         return 1.0 / self.sigma_theta**2
 
     @cached_property
@@ -228,7 +238,7 @@ class PoseMixture:
         Shifting every term by c0 keeps exp() <= 1 without a per-pose max.
 
         The widths are usually one shared value (``NearestNeighbourSensorModel``); their
-        normalizers are then computed once from scalars (this setup was ~0.1 ms per image)."""
+        normalizers are then computed once from scalars (cached per width pair)."""
         mu = self.poses
         k = mu.shape[0]
         sxy, sth = self.sigma_xy, self.sigma_theta
@@ -266,10 +276,10 @@ class PoseMixture:
         Every such pose has a density at least the outlier's (u after the shift); a kernel
         whose largest term over the box (its peak minus the squared distance from its centre
         to the box over 2 s^2) is below u exp(-_PRUNE_NATS) changes no sum by more than
-        K exp(-40) ~ 4e-17 relative (below float64 round-off) and is left out. Measured on the
-        lab drive (tube light, tracking): half of the J = 10 neighbours are that far from the
-        particles, and exp() is most of the cost (10-15 % less time per update at 1000-10000
-        particles). Not tried on few poses (the bound costs ~25 us)."""
+        K exp(-40) ~ 4e-17 relative (below float64 round-off) and is left out. The result
+        equals the unpruned sum to round-off; it saves the exp() of the pruned rows (see
+        docs/results.md). Edge cases: no outlier component (u = 0) or a single kernel: no
+        pruning."""
         a, _, u, peak = self._coefficients
         if u <= 0.0 or a.shape[0] <= 1:
             return a
@@ -447,7 +457,8 @@ class PoseMixture:
 
 
 class SensorModelConfig(BaseModel):
-    """Configuration of the nearest-neighbour sensor model (design.md section 2)."""
+    """Configuration of the nearest-neighbour sensor model (paper, section 3 and eq. 8; see
+    the module docstring)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -456,12 +467,9 @@ class SensorModelConfig(BaseModel):
     sigma_theta: float = Field(0.3, gt=0.0, description="kernel width in theta, radians")
     lambda_scale: Literal["median", "nearest", "uniform"] = "median"
     lambda_scale_factor: float = Field(1.0, gt=0.0)
-    # 0.5 (was 0.01), measured (issue 3, docs/evaluations.md): under light and
-    # scene changes the map does not know, most J-nearest sets are wrong (top-1 within 0.5 m for
-    # 5-17 % of the frames under bulb / natural light in the lab). Tracking the 60 s lab drive
-    # (histeq, kidnap recovery off), mean error tube / bulb / natural: outlier 0.01 -> 0.18 /
-    # 0.34 / 2.62 m, 0.3 -> 0.18 / 0.24 / 0.47 m, 0.6 -> 0.19 / 0.21 / 0.25 m. Global
-    # localization in the office (20 starts, 30 updates) is unchanged within its noise.
+    # 0.5, chosen by measurement (docs/results.md, 'Notes moved from the code'): under light
+    # and scene changes the map does not know, most J-nearest sets are wrong, and a larger
+    # uniform component keeps a wrong set from overruling the odometry.
     outlier_weight: float = Field(
         0.5, ge=0.0, lt=1.0, description="weight of the uniform component"
     )
@@ -474,13 +482,20 @@ class SensorModelConfig(BaseModel):
 
 
 def lambda_log_weights(dist2: ArrayLike, scale: str = "median", factor: float = 1.0) -> FloatArray:
-    """log lambda_j = log softmax(-d_j^2 / (2 s^2)) over the last axis (see module docstring)."""
+    """log lambda_j = log softmax_j(-d_j^2 / (2 s^2)) over the last axis (see module docstring).
+
+    ``dist2`` are squared feature distances (..., J); s^2 = ``factor``^2 times their median
+    (``scale="median"``, the mean of the two middle values for even J) or their minimum
+    (``"nearest"``); ``"uniform"`` gives log(1/J). A zero scale (an exact match) falls back to
+    the largest distance, and all-zero distances give uniform weights. ValueError on an
+    unknown ``scale``.
+    """
     d2 = np.asarray(dist2, dtype=np.float64)
     if d2.ndim == 1 and d2.size and scale != "uniform":
         return _lambda_log_weights_1d(d2, scale, factor)
     if scale == "uniform":
         return np.full(d2.shape, -math.log(d2.shape[-1]))
-    if scale == "median":  # (np.median costs ~40 us per call; J is small, so sort)
+    if scale == "median":  # J is small: a sort is cheaper than np.median's overhead
         srt = np.sort(d2, axis=-1)
         k = d2.shape[-1]
         s2 = 0.5 * (srt[..., (k - 1) // 2 : (k - 1) // 2 + 1] + srt[..., k // 2 : k // 2 + 1])
@@ -517,7 +532,8 @@ def _lambda_log_weights_1d(d2: FloatArray, scale: str, factor: float) -> FloatAr
 
 
 class NearestNeighbourSensorModel:
-    """J-nearest-neighbour appearance sensor model over one map channel (design.md section 2).
+    """J-nearest-neighbour appearance sensor model over one map channel (see the module
+    docstring: the mixture of eq. 8 for one channel, feature weights lambda_j, outlier).
 
     ``map_poses`` (N, 3) are CAMERA poses; evaluate the mixtures at
     ``camera_pose(robot_particles, pan)``.
@@ -563,12 +579,15 @@ class NearestNeighbourSensorModel:
                 self.index_kind = "brute"
 
     def _tree_pays(self, n_probe: int = 24) -> bool:
-        """Time both searches on probe queries (map features plus noise, fixed seed).
+        """True when the KD-tree search is clearly faster than brute force on this map.
 
-        Measured (this 2-core machine, J = 10, 20 features, median per query): with PCA-like
-        features (decaying variances) the tree wins, 0.08-0.11 vs 0.16-0.23 ms at 4000 entries
-        and 0.3-0.5 vs 1.0 ms at 40000; with 20 equally-varying features it loses badly at
-        40000 entries (3.6-4.1 vs 0.9-1.2 ms). The data decide, so "auto" measures.
+        Both searches answer ``n_probe`` probe queries (map features plus 0.25 feature-std of
+        Gaussian noise, fixed seed 12345), twice each in alternation; the best time of each is
+        kept and the tree is taken when it needs under 0.8 of brute force's. Which one wins
+        depends on the data (a KD-tree suits PCA features with decaying variances, not equally
+        varying ones; see docs/results.md), so "auto" measures. The two searches return the
+        same neighbours up to ties; their squared distances differ by round-off (brute force
+        expands |f - y|^2).
         """
         import time
 
@@ -604,13 +623,15 @@ class NearestNeighbourSensorModel:
         return self._reference_distance
 
     def novelty(self, nearest_dist2: float) -> float:
-        """Distance to the nearest map entry over :attr:`reference_distance`: ~1 for a view
-        like the mapped ones; measured in the lab (median over a drive with unmodelled scene
-        changes): 1.3 under the mapping light, 2.6 under ``bulb``, 3.7 under ``natural``."""
+        """Distance to the nearest map entry over :attr:`reference_distance`:
+        ``sqrt(max(d_1^2, 0)) / reference_distance``, about 1 for a view like the mapped ones
+        and larger for a view the map does not know (changed light or scene; typical values
+        in docs/evaluations.md, 'Kidnap recovery while tracking')."""
         return math.sqrt(max(float(nearest_dist2), 0.0)) / self.reference_distance
 
     @property
     def dim(self) -> int:
+        """d, the length of a feature vector of this channel."""
         return int(self.features.shape[1])
 
     def neighbours(self, y: ArrayLike, j: int | None = None) -> tuple[IntArray, FloatArray]:
@@ -623,13 +644,13 @@ class NearestNeighbourSensorModel:
             raise LinoLocError("observed features: contain NaN or infinite values")
         j = self.j if j is None else min(int(j), self.poses.shape[0])
         if self._tree is not None:
-            # one query as a vector: the 2-D argument handling cost ~20 us per image
+            # one query as a vector (cheaper than cKDTree's 2-D argument handling)
             d, idx = self._tree.query(q[0] if q.shape[0] == 1 else q, k=j)
             d2 = np.asarray(d, dtype=np.float64).reshape(q.shape[0], j) ** 2
             return np.asarray(idx, dtype=np.int64).reshape(q.shape[0], j), d2
         # |f|^2 - 2 f.y + |y|^2; clip round-off below zero. For a few queries einsum (no BLAS)
-        # is used: a threaded BLAS matrix-vector product measured 8 ms instead of 0.6 ms for
-        # 40000 x 20 on this (shared, 2-core) machine.
+        # is used: a threaded BLAS matrix-vector product is much slower on a loaded machine
+        # (see docs/results.md).
         if q.shape[0] <= 8:
             cross = np.einsum("bj,nj->bn", q, self.features)
         else:
@@ -657,9 +678,9 @@ class NearestNeighbourSensorModel:
     ) -> FloatArray:
         """log p(y_b | x_m) for many observations at once: y (B, d), camera poses (M, 3) -> (B, M).
 
-        Row b equals ``self.observe(y[b], j).log_pdf(camera_poses)``; vectorized for the
-        active-vision search (issue 6), which needs the sensor model of every predicted
-        observation at every particle.
+        Row b equals ``self.observe(y[b], j).log_pdf(camera_poses)`` up to round-off;
+        vectorized for the active-vision search (the entropy H(u) of the paper's section 4),
+        which needs the sensor model of every predicted observation at every particle.
         """
         c = self.config
         idx, d2 = self.neighbours(y, j)

@@ -1,4 +1,4 @@
-"""Convert a TUM RGB-D sequence into a lino-loc dataset folder (design.md section 4.2).
+"""Convert a TUM RGB-D sequence into a lino-loc dataset folder (docs/datasets.md).
 
 A TUM sequence (Sturm et al., IROS 2012) holds ``rgb/`` and ``depth/`` PNGs, the lists
 ``rgb.txt`` / ``depth.txt`` and/or an ``associations.txt`` (``rgb_stamp rgb_path depth_stamp

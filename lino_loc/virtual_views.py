@@ -5,10 +5,9 @@ The paper maps every 75 cm and every 15 deg. An image taken off that grid is, at
 picture by a tenth of its width: for global (PCA) features that is a larger change than moving
 the robot 30 cm sideways, which shifts the picture the same way. The nearest map images of an
 off-grid view are therefore often those of the NEIGHBOURING grid position at a compensating
-heading, and the sensor model (eq. 10's kernels at the map poses) puts its weight one cell
-off. Measured in the simulated office (``lino-loc eval active --ideal``): the exact posterior
-of four images finds the right cell in 61 % of the cases with the paper's map and 84-89 %
-with the map completed by virtual headings.
+heading, and the sensor model (kernels at the map poses, as in eq. 8) puts its weight one cell
+off. Completing the map by virtual headings reduces that bias (the measured effect on single
+views and on active localization is in docs/results.md, 'Virtual headings').
 
 A turn of the camera about its optical centre needs no depth: image points move by the
 homography (Hartley & Zisserman, Multiple View Geometry, 2nd ed., eq. 8.8 / result 8.12)
@@ -57,6 +56,10 @@ class VirtualHeadings:
         cls, fx: float, fy: float, cx: float, cy: float, camera_size: tuple[int, int], size: tuple[int, int],
         offsets: Sequence[float],
     ) -> VirtualHeadings:
+        """The virtual headings of a camera with intrinsics (fx, fy, cx, cy) at camera_size = (W, H)
+        used at the working size = (w, h): K scaled by :func:`scaled_intrinsics`, the margin
+        that the largest |offset| needs (:func:`margin_columns`). LinoLocError without offsets.
+        """
         K = scaled_intrinsics(fx, fy, cx, cy, camera_size, size)
         d = tuple(float(x) for x in offsets)
         if not d:

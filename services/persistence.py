@@ -59,6 +59,9 @@ class SavedState(BaseModel):
         state: str = "tracking",
         map_checksum: str | None = None,
     ) -> SavedState:
+        """The state to save for an estimate: pose (3,), covariance (3, 3) or (9,) made symmetric
+        ((C + C^T) / 2), stamp of the estimate, saved_at = now.
+        """
         p = [float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3)]
         c = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
         c = 0.5 * (c + c.T)
@@ -72,9 +75,11 @@ class SavedState(BaseModel):
         )
 
     def mean(self) -> np.ndarray:
+        """The saved pose as (x, y, theta), float64 (3,)."""
         return np.array(self.pose.as_tuple(), dtype=np.float64)
 
     def cov(self) -> np.ndarray:
+        """The saved covariance, float64 (3, 3)."""
         return np.asarray(self.covariance, dtype=np.float64).reshape(3, 3)
 
 

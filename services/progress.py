@@ -18,6 +18,10 @@ class Progress:
         self._drawn = False
 
     def update(self, done: int, total: int, label: str | None = None) -> None:
+        """Redraw the line with done/total, the elapsed time and the remaining time extrapolated
+        from the rate so far; skipped within 0.1 s of the last redraw unless done >= total.
+        No-op when disabled.
+        """
         if not self.enabled:
             return
         now = time.monotonic()
@@ -33,6 +37,7 @@ class Progress:
         self._drawn = True
 
     def close(self) -> None:
+        """End the line (newline) if one was drawn."""
         if self._drawn:
             self.stream.write("\n")
             self.stream.flush()

@@ -69,6 +69,7 @@ class Notifier:
 
     @property
     def enabled(self) -> bool:
+        """True when there is a socket address to send to."""
         return self._address is not None
 
     def notify(self, assignments: str | Mapping[str, object]) -> bool:
@@ -113,6 +114,7 @@ class Notifier:
         return self.notify(msg)
 
     def close(self) -> None:
+        """Close the socket (opened on first send); later sends reopen it."""
         with self._lock:
             if self._sock is not None:
                 self._sock.close()

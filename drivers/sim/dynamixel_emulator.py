@@ -95,10 +95,13 @@ class EmulatedServo:
 
     # table access --------------------------------------------------------------------------
     def get(self, addr: int, size: int | None = None) -> int:
+        """Unsigned little-endian value of the field at ``addr`` (``size`` bytes; default: the
+        field's size in the X-series table, else 1)."""
         size = size or _SIZES.get(XAddr(addr), 1)
         return int.from_bytes(self.table[addr : addr + size], "little")
 
     def set(self, addr: int, value: int, size: int | None = None) -> None:
+        """Write ``value`` little-endian into the field at ``addr`` (size as in :meth:`get`)."""
         size = size or _SIZES.get(XAddr(addr), 1)
         self.table[addr : addr + size] = le(value, size)
 
@@ -112,10 +115,15 @@ class EmulatedServo:
 
     # motion ----------------------------------------------------------------------------------
     def velocity_ticks_s(self) -> float:
+        """Profile velocity in ticks/s: units x 0.229 rev/min (0 = max_velocity_units)."""
         units = self.get(XAddr.PROFILE_VELOCITY) or self.max_velocity_units
         return units * PROFILE_VELOCITY_UNIT_RPM / 60.0 * TICKS_PER_REV
 
     def advance(self, now: float) -> None:
+        """Move the present position towards the goal for the time since the last call (torque
+        on: at most velocity_ticks_s() dt, landing exactly on the goal), then refresh the
+        present-value fields. A clock that goes backwards moves nothing.
+        """
         dt = max(0.0, now - self.last_update)
         self.last_update = now
         velocity = 0.0
@@ -144,6 +152,7 @@ class EmulatedServo:
 
     @property
     def alert(self) -> int:
+        """The alert bit of the status packet's error byte while a hardware error is set, else 0."""
         return ALERT_BIT if self.table[XAddr.HARDWARE_ERROR_STATUS] else 0
 
 
@@ -176,6 +185,7 @@ class DynamixelBusEmulator:
         return self._pty.path
 
     def start(self) -> DynamixelBusEmulator:
+        """Open the pty and start the serving thread; returns self."""
         self._pty.open()
         self._stop_r, self._stop_w = os.pipe()
         self._thread = threading.Thread(target=self._serve, name="dxl-emulator", daemon=True)
@@ -183,6 +193,7 @@ class DynamixelBusEmulator:
         return self
 
     def stop(self) -> None:
+        """Stop the serving thread (waiting up to 2 s for it) and close the pty."""
         if self._thread is not None:
             os.write(self._stop_w, b"x")
             self._thread.join(timeout=2.0)
@@ -199,6 +210,7 @@ class DynamixelBusEmulator:
 
     # fault injection -------------------------------------------------------------------------
     def set_no_reply(self, dxl_id: int, silent: bool = True) -> None:
+        """Make servo dxl_id silent (no status packets) or answer again."""
         with self._lock:
             self.servos[dxl_id].no_reply = silent
 
@@ -217,12 +229,15 @@ class DynamixelBusEmulator:
 
     # inspection --------------------------------------------------------------------------------
     def position_rad(self, dxl_id: int) -> float:
+        """Present position of servo ``dxl_id`` in radians, (position - CENTER_TICK) 2 pi /
+        TICKS_PER_REV (motion advanced first)."""
         with self._lock:
             s = self.servos[dxl_id]
             s.advance(time.monotonic())
             return (s.position - CENTER_TICK) * 2.0 * math.pi / TICKS_PER_REV
 
     def register(self, dxl_id: int, addr: XAddr) -> int:
+        """Current value of the control-table field addr of servo dxl_id (motion advanced first)."""
         with self._lock:
             s = self.servos[dxl_id]
             s.advance(time.monotonic())

@@ -394,7 +394,8 @@ def _lightmap_points(s: Surface) -> tuple[np.ndarray, int, int]:
 
 
 _BAKE_CACHE: dict[tuple, Baked] = {}
-_BAKE_CACHE_SIZE = 8  # a bake of the lab is about 20 MB
+# Bakes kept in memory, least recently used dropped first (a bake's size: docs/results.md).
+_BAKE_CACHE_SIZE = 8
 
 
 def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str] = (), texel: float = 0.01) -> Baked:

@@ -87,6 +87,7 @@ class OdometryBoardEmulator:
         return self
 
     def stop(self) -> None:
+        """Stop streaming (waiting up to 2 s for the thread) and close the pty."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
@@ -101,13 +102,17 @@ class OdometryBoardEmulator:
 
     # driving -----------------------------------------------------------------------------------
     def set_wheel_speeds(self, left_mps: float, right_mps: float) -> None:
+        """Wheel speeds in m/s, converted with ticks_per_metre (see :meth:`set_tick_rates`)."""
         self.set_tick_rates(left_mps * self.ticks_per_metre, right_mps * self.ticks_per_metre)
 
     def set_tick_rates(self, left_ticks_s: float, right_ticks_s: float) -> None:
+        """Encoder rates in ticks/s from now on; the counters integrate them in real time."""
         with self._lock:
             self._rates = (float(left_ticks_s), float(right_ticks_s))
 
     def set_counters(self, left: int, right: int, t_ms: int | None = None) -> None:
+        """Set the raw counters (and, with ``t_ms``, the lines' millisecond clock), e.g. just
+        below 2^32 to exercise the wrap."""
         with self._lock:
             self._left, self._right = float(left), float(right)
             if t_ms is not None:
@@ -120,18 +125,23 @@ class OdometryBoardEmulator:
 
     # faults --------------------------------------------------------------------------------
     def inject_garbage(self, n: int) -> None:
+        """Send n random bytes (never a '$') before the next line; adds to any pending count."""
         with self._lock:
             self._garbage += n
 
     def drop_lines(self, n: int) -> None:
+        """Do not send the next n lines (sequence numbers still advance); adds to any pending
+        count."""
         with self._lock:
             self._drop += n
 
     def corrupt_lines(self, n: int) -> None:
+        """Change a digit of the next n lines after their checksum; adds to any pending count."""
         with self._lock:
             self._corrupt += n
 
     def split_lines(self, n: int) -> None:
+        """Write the next n lines in two pieces split_delay s apart; adds to any pending count."""
         with self._lock:
             self._split += n
 

@@ -141,11 +141,14 @@ class Renderer:
         return self._changes
 
     def set_lighting(self, name: str) -> None:
+        """Switch to the lighting setup ``name`` (checked) and load its bake (cached in memory)."""
         self.world.check_lighting(name)
         self._lighting = name
         self._load()
 
     def set_scene_changes(self, names: tuple[str, ...] | list[str]) -> None:
+        """Apply the scene changes ``names`` (checked, duplicates dropped) instead of the current
+        ones, and load their bake."""
         self._changes = self.world.check_changes(tuple(names))
         self._load()
 
@@ -510,8 +513,11 @@ class Renderer:
         return 255.0 * (0.5 * (lo_ + hi_)) ** cam.gamma
 
     def _normals(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """n standard normal samples: a random window (offset and stride) into a pre-drawn
-        buffer, drawn with ``rng`` (reproducible, and 5x cheaper than fresh draws)."""
+        """n standard normal samples (float32): a window of a pre-drawn buffer (seed 12345, at
+        least max(2^21, 8 n) values) at an offset and a stride of 1-3 drawn from ``rng``, its
+        sign flipped with probability 1/2 (also from ``rng``). Reproducible for a given
+        ``rng`` and much cheaper than fresh draws (see docs/results.md); windows of
+        successive calls may overlap, which image noise does not notice."""
         if self._noise_buf is None or self._noise_buf.size < 4 * n:
             self._noise_buf = np.random.default_rng(12345).standard_normal(max(1 << 21, 8 * n), dtype=np.float32)
         buf = self._noise_buf

@@ -326,6 +326,7 @@ class World:
 
     @property
     def room(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of the room's floor, metres."""
         return self.spec.room.as_tuple()
 
     @property
@@ -337,6 +338,7 @@ class World:
         return tuple(self.spec.scene_changes)
 
     def check_lighting(self, name: str) -> LightingSetup:
+        """The lighting setup called name; LinoLocError naming the known setups otherwise."""
         if name not in self.spec.lighting:
             raise LinoLocError(
                 f"world '{self.name}': unknown lighting '{name}' (have: {', '.join(self.spec.lighting)})"
@@ -344,6 +346,7 @@ class World:
         return self.spec.lighting[name]
 
     def check_changes(self, names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+        """The scene-change names in order, duplicates dropped; LinoLocError on an unknown one."""
         out = []
         for n in names:
             if n not in self.spec.scene_changes:
