@@ -47,6 +47,7 @@ import dynamixel_sdk.port_handler as _sdk_port_handler
 import serial
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from drivers.backoff import Backoff
 from drivers.dynamixel_protocol import (
     ALERT_BIT,
     XAddr,
@@ -73,6 +74,9 @@ _PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 SDK_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                  1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # fmt: skip
+
+#: First delay between reopen attempts, s (doubling per failure up to ``reconnect_backoff_max``).
+RECONNECT_BACKOFF_MIN = 0.1
 
 _BLOCK_START = XAddr.TORQUE_ENABLE  # 64
 _BLOCK_LEN = XAddr.PRESENT_POSITION + 4 - _BLOCK_START  # 72 bytes: 64..135
@@ -148,7 +152,7 @@ class DynamixelHead:
         self._sync_read: Any = None
         self._connected = False
         self._next_connect = 0.0
-        self._backoff = 0.1
+        self._backoff = Backoff(RECONNECT_BACKOFF_MIN, c.reconnect_backoff_max)
         self._goal: dict[int, int] = {}
         self._state = HeadState(stamp=0.0, pan=0.0, tilt=0.0, moving=False, stale=True)
         self._last_read_mono = -1e9
@@ -270,12 +274,12 @@ class DynamixelHead:
                 self._sync_read.addParam(dxl_id)
         except (*_PORT_ERRORS, _Fault) as exc:
             self._disconnect()
-            self._next_connect = time.monotonic() + self._backoff
-            self._backoff = min(self._backoff * 2.0, c.reconnect_backoff_max)
+            delay = self._backoff.failed()
+            self._next_connect = time.monotonic() + delay
             self._health.error(f"head on {c.port}: {exc}", HealthState.FAILED)
-            log.warning("head: cannot set up %s: %s (retry in %.1f s)", c.port, exc, self._backoff)
+            log.warning("head: cannot set up %s: %s (retry in %.1f s)", c.port, exc, delay)
             return False
-        self._backoff = 0.1
+        self._backoff.reset()
         self._health.set_state(HealthState.OK)
         log.info("head: connected on %s (ids %s)", c.port, self._ids)
         return True
@@ -296,7 +300,7 @@ class DynamixelHead:
         self._health.error(f"head port {self.config.port} lost: {exc}", HealthState.FAILED)
         log.warning("head: port lost (%s); will reopen", exc)
         self._disconnect()
-        self._next_connect = time.monotonic() + self._backoff
+        self._next_connect = time.monotonic() + self._backoff.delay  # hold off d_k, not a failure
 
     # ---------------------------------------------------------------------------------------
     # servo set-up and recovery

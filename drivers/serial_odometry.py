@@ -42,6 +42,7 @@ import time
 import serial
 from pydantic import BaseModel, ConfigDict, Field
 
+from drivers.backoff import Backoff
 from drivers.interfaces import DeviceHealth, HealthState, HealthTracker, OdometryIncrement
 from drivers.odometry_protocol import (
     MAX_LINE,
@@ -148,15 +149,18 @@ class SerialOdometry:
     # reader thread
     # ---------------------------------------------------------------------------------------
     def _run(self) -> None:
+        """Open the port (with backoff while it cannot be opened) and pump it until ``close``.
+
+        A lost port is reopened at once; only failed opens wait, ``reconnect_backoff_min``
+        doubling per failure up to ``reconnect_backoff_max``."""
         c = self.config
-        backoff = c.reconnect_backoff_min
+        backoff = Backoff(c.reconnect_backoff_min, c.reconnect_backoff_max)
         while not self._stop.is_set():
             if self._ser is None:
                 if not self._open_port():
-                    self._stop.wait(backoff)
-                    backoff = min(backoff * 2.0, c.reconnect_backoff_max)
+                    backoff.wait(self._stop)
                     continue
-                backoff = c.reconnect_backoff_min
+                backoff.reset()
             try:
                 self._pump()
             except (serial.SerialException, OSError, termios.error, TypeError) as exc:
