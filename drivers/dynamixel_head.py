@@ -17,15 +17,18 @@ Faults never raise into the caller:
 - a servo reporting a hardware error is rebooted (logged and counted as ``reboots``), then its
   profile velocity, goal and torque are restored; more than ``max_reboots`` reboots within a
   minute leave it off and the health FAILED;
-- a port that cannot be opened or vanishes leaves the health FAILED and is reopened with
-  backoff on later calls.
+- a port that cannot be opened or vanishes leaves the health FAILED and is reopened on later
+  calls, after a pause that doubles per failed attempt from ``RECONNECT_BACKOFF_MIN`` up to
+  ``reconnect_backoff_max`` and falls back to the minimum after a successful set-up
+  (:class:`drivers.backoff.Backoff`; a lost port pauses the current delay before the first
+  reopen).
 
-CPU: the SDK reads the port with ``timeout=0`` and spins until its packet timeout (derived
-from the module-level ``LATENCY_TIMER``). The adapter gives the pyserial object a short
-blocking timeout (``poll_interval``), so waiting sleeps in ``select`` instead of spinning, and
-sets ``LATENCY_TIMER`` from the configuration (process-wide, the SDK has no per-port value).
-The adapter has no background thread: an idle adapter uses no CPU, and ``read`` is rate
-limited (``min_read_interval``). All bus access happens under one lock.
+Waiting: the SDK reads the port with ``timeout=0`` and spins until its packet timeout
+(2 x ``LATENCY_TIMER`` + 2 ms, from the module-level ``LATENCY_TIMER``). The adapter gives
+the pyserial object a short blocking timeout (``poll_interval``), so waiting sleeps in
+``select`` instead of spinning, and sets ``LATENCY_TIMER`` from the configuration
+(process-wide, the SDK has no per-port value). The adapter has no background thread, and
+``read`` is rate limited (``min_read_interval``). All bus access happens under one lock.
 
 Usage::
 
@@ -83,7 +86,7 @@ _BLOCK_LEN = XAddr.PRESENT_POSITION + 4 - _BLOCK_START  # 72 bytes: 64..135
 
 
 class HeadConfig(BaseModel):
-    """Configuration of the pan-tilt head (design.md section 6 defaults)."""
+    """Configuration of the pan-tilt head: bus, servo ids, limits, motion and fault handling."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 

@@ -6,8 +6,10 @@ left-right check, subpixel, confidence threshold, disparity aligned to the recti
 image); its ``rectifiedLeft``, ``rectifiedRight`` and ``disparity`` outputs go to host output
 queues. A supervisor thread owns the pipeline: it starts it, assembles frames, and when the
 device disappears (queue closed, pipeline stopped, any depthai error) stops it in ``finally``
-and starts a new one with exponential backoff, without ending the process; meanwhile the
-health says DEGRADED (FAILED if it never started).
+and starts a new one, without ending the process; meanwhile the health says DEGRADED (FAILED
+if it never started). The waits before restarts double from ``reconnect_backoff_min`` up to
+``reconnect_backoff_max`` and fall back to the minimum once a pipeline has started
+(:class:`drivers.backoff.Backoff`).
 
 The host-side parts are separate and testable without a device:
 - :func:`stereo_config` maps :class:`OakdConfig` to a ``dai.StereoDepthConfig``;
