@@ -17,15 +17,18 @@ Faults never raise into the caller:
 - a servo reporting a hardware error is rebooted (logged and counted as ``reboots``), then its
   profile velocity, goal and torque are restored; more than ``max_reboots`` reboots within a
   minute leave it off and the health FAILED;
-- a port that cannot be opened or vanishes leaves the health FAILED and is reopened with
-  backoff on later calls.
+- a port that cannot be opened or vanishes leaves the health FAILED and is reopened on later
+  calls, after a pause that doubles per failed attempt from ``RECONNECT_BACKOFF_MIN`` up to
+  ``reconnect_backoff_max`` and falls back to the minimum after a successful set-up
+  (:class:`drivers.backoff.Backoff`; a lost port pauses the current delay before the first
+  reopen).
 
-CPU: the SDK reads the port with ``timeout=0`` and spins until its packet timeout (derived
-from the module-level ``LATENCY_TIMER``). The adapter gives the pyserial object a short
-blocking timeout (``poll_interval``), so waiting sleeps in ``select`` instead of spinning, and
-sets ``LATENCY_TIMER`` from the configuration (process-wide, the SDK has no per-port value).
-The adapter has no background thread: an idle adapter uses no CPU, and ``read`` is rate
-limited (``min_read_interval``). All bus access happens under one lock.
+Waiting: the SDK reads the port with ``timeout=0`` and spins until its packet timeout
+(2 x ``LATENCY_TIMER`` + 2 ms, from the module-level ``LATENCY_TIMER``). The adapter gives
+the pyserial object a short blocking timeout (``poll_interval``), so waiting sleeps in
+``select`` instead of spinning, and sets ``LATENCY_TIMER`` from the configuration
+(process-wide, the SDK has no per-port value). The adapter has no background thread, and
+``read`` is rate limited (``min_read_interval``). All bus access happens under one lock.
 
 Usage::
 
@@ -47,6 +50,7 @@ import dynamixel_sdk.port_handler as _sdk_port_handler
 import serial
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from drivers.backoff import Backoff
 from drivers.dynamixel_protocol import (
     ALERT_BIT,
     XAddr,
@@ -74,12 +78,15 @@ _PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 SDK_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                  1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # fmt: skip
 
+#: First delay between reopen attempts, s (doubling per failure up to ``reconnect_backoff_max``).
+RECONNECT_BACKOFF_MIN = 0.1
+
 _BLOCK_START = XAddr.TORQUE_ENABLE  # 64
 _BLOCK_LEN = XAddr.PRESENT_POSITION + 4 - _BLOCK_START  # 72 bytes: 64..135
 
 
 class HeadConfig(BaseModel):
-    """Configuration of the pan-tilt head (design.md section 6 defaults)."""
+    """Configuration of the pan-tilt head: bus, servo ids, limits, motion and fault handling."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -148,7 +155,7 @@ class DynamixelHead:
         self._sync_read: Any = None
         self._connected = False
         self._next_connect = 0.0
-        self._backoff = 0.1
+        self._backoff = Backoff(RECONNECT_BACKOFF_MIN, c.reconnect_backoff_max)
         self._goal: dict[int, int] = {}
         self._state = HeadState(stamp=0.0, pan=0.0, tilt=0.0, moving=False, stale=True)
         self._last_read_mono = -1e9
@@ -270,12 +277,12 @@ class DynamixelHead:
                 self._sync_read.addParam(dxl_id)
         except (*_PORT_ERRORS, _Fault) as exc:
             self._disconnect()
-            self._next_connect = time.monotonic() + self._backoff
-            self._backoff = min(self._backoff * 2.0, c.reconnect_backoff_max)
+            delay = self._backoff.failed()
+            self._next_connect = time.monotonic() + delay
             self._health.error(f"head on {c.port}: {exc}", HealthState.FAILED)
-            log.warning("head: cannot set up %s: %s (retry in %.1f s)", c.port, exc, self._backoff)
+            log.warning("head: cannot set up %s: %s (retry in %.1f s)", c.port, exc, delay)
             return False
-        self._backoff = 0.1
+        self._backoff.reset()
         self._health.set_state(HealthState.OK)
         log.info("head: connected on %s (ids %s)", c.port, self._ids)
         return True
@@ -296,7 +303,7 @@ class DynamixelHead:
         self._health.error(f"head port {self.config.port} lost: {exc}", HealthState.FAILED)
         log.warning("head: port lost (%s); will reopen", exc)
         self._disconnect()
-        self._next_connect = time.monotonic() + self._backoff
+        self._next_connect = time.monotonic() + self._backoff.delay  # hold off d_k, not a failure
 
     # ---------------------------------------------------------------------------------------
     # servo set-up and recovery

@@ -1,7 +1,8 @@
 """Device interfaces of the robot and the data they return.
 
 Three small interfaces, each with a real adapter (vendor library) and a fake (emulator or
-renderer) behind it:
+renderer) behind it, and the :class:`Device` life cycle they share (``open``, ``health``,
+``close``):
 
 - :class:`StereoCamera` -> :class:`StereoFrame` (rectified grey pair, optional disparity,
   intrinsics and baseline: the inputs of the paper's disparity sensor model);
@@ -11,12 +12,13 @@ renderer) behind it:
   frame, the input of the odometry action model).
 
 All of them report a :class:`DeviceHealth`. Adapters never raise into the caller for device
-glitches (timeouts, corrupt packets, an unplugged cable): they retry, count, and say so in
-their health. They raise only for programming or configuration mistakes.
+glitches (timeouts, corrupt packets, an unplugged cable): they retry (reconnecting with
+:class:`drivers.backoff.Backoff`), count, and say so in their health. They raise only for
+programming or configuration mistakes.
 
 Usage::
 
-    from drivers.interfaces import StereoCamera, PanTiltHead, Odometry, HealthState
+    from drivers.interfaces import Device, StereoCamera, PanTiltHead, Odometry, HealthState
 """
 
 from __future__ import annotations
@@ -113,6 +115,18 @@ class HealthTracker:
             )
 
 
+@runtime_checkable
+class Device(Protocol):
+    """The life cycle every device shares: open, report health, close."""
+
+    def open(self) -> bool | None:
+        """Connect or start streaming. Never raises for a missing device: health says so."""
+
+    def health(self) -> DeviceHealth: ...
+
+    def close(self) -> None: ...
+
+
 # --------------------------------------------------------------------------------------------
 # Stereo camera
 # --------------------------------------------------------------------------------------------
@@ -150,7 +164,7 @@ class StereoFrame:
 
 
 @runtime_checkable
-class StereoCamera(Protocol):
+class StereoCamera(Device, Protocol):
     """A calibrated stereo camera producing rectified pairs (and optionally disparity)."""
 
     def open(self) -> bool | None:
@@ -158,10 +172,6 @@ class StereoCamera(Protocol):
 
     def read(self, timeout: float | None = None) -> StereoFrame | None:
         """The next frame, or None if none arrived within ``timeout`` seconds."""
-
-    def health(self) -> DeviceHealth: ...
-
-    def close(self) -> None: ...
 
 
 # --------------------------------------------------------------------------------------------
@@ -214,7 +224,7 @@ class HeadState:
 
 
 @runtime_checkable
-class PanTiltHead(Protocol):
+class PanTiltHead(Device, Protocol):
     """A pan-tilt unit in position control."""
 
     @property
@@ -227,10 +237,6 @@ class PanTiltHead(Protocol):
         """Send goal angles (radians); they are clamped to the limits."""
 
     def read(self) -> HeadState: ...
-
-    def health(self) -> DeviceHealth: ...
-
-    def close(self) -> None: ...
 
 
 # --------------------------------------------------------------------------------------------
@@ -256,7 +262,7 @@ class OdometryIncrement:
 
 
 @runtime_checkable
-class Odometry(Protocol):
+class Odometry(Device, Protocol):
     """Timestamped pose increments of the base."""
 
     def open(self) -> bool | None:
@@ -264,7 +270,3 @@ class Odometry(Protocol):
 
     def read(self, timeout: float | None = None) -> list[OdometryIncrement]:
         """Increments received since the previous call (waits up to ``timeout`` s for one)."""
-
-    def health(self) -> DeviceHealth: ...
-
-    def close(self) -> None: ...

@@ -6,8 +6,10 @@ left-right check, subpixel, confidence threshold, disparity aligned to the recti
 image); its ``rectifiedLeft``, ``rectifiedRight`` and ``disparity`` outputs go to host output
 queues. A supervisor thread owns the pipeline: it starts it, assembles frames, and when the
 device disappears (queue closed, pipeline stopped, any depthai error) stops it in ``finally``
-and starts a new one with exponential backoff, without ending the process; meanwhile the
-health says DEGRADED (FAILED if it never started).
+and starts a new one, without ending the process; meanwhile the health says DEGRADED (FAILED
+if it never started). The waits before restarts double from ``reconnect_backoff_min`` up to
+``reconnect_backoff_max`` and fall back to the minimum once a pipeline has started
+(:class:`drivers.backoff.Backoff`).
 
 The host-side parts are separate and testable without a device:
 - :func:`stereo_config` maps :class:`OakdConfig` to a ``dai.StereoDepthConfig``;
@@ -43,6 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.backoff import Backoff
 from drivers.interfaces import (
     CameraIntrinsics,
     DeviceHealth,
@@ -471,42 +474,49 @@ class OakdCamera:
 
     # ---------------------------------------------------------------------------------------
     def _supervise(self) -> None:
+        """Run pipeline sessions until ``close``, waiting the backoff after each one.
+
+        A session that started resets the backoff, so the wait after losing a running device
+        is ``reconnect_backoff_min``; each start failure in a row doubles it (capped)."""
         c = self.config
-        backoff = c.reconnect_backoff_min
+        backoff = Backoff(c.reconnect_backoff_min, c.reconnect_backoff_max)
         while not self._stop.is_set():
-            session: PipelineSession | None = None
-            try:
-                session = self._factory(c)
-                if self._ever_started:
-                    self._health.count("reconnects")
-                self._ever_started = True
-                self._health.set_state(HealthState.OK)
-                log.info("oakd: pipeline running")
-                backoff = c.reconnect_backoff_min
-                self._stream(session)
-                if not self._stop.is_set():
-                    self._health.error("oakd: device lost (pipeline stopped); restarting")
-                    log.warning("oakd: pipeline stopped; restarting")
-            except Exception as exc:  # noqa: BLE001 - depthai raises RuntimeError and others
-                if self._stop.is_set():
-                    break
-                state = HealthState.DEGRADED if self._ever_started else HealthState.FAILED
-                if session is None:
-                    self._health.count("start_failures")
-                    what = "cannot start"
-                else:
-                    what = "device lost"
-                self._health.error(f"oakd: {what} ({type(exc).__name__}: {exc})", state)
-                log.warning("oakd: %s: %s (retry in %.1f s)", what, exc, backoff)
-            finally:
-                if session is not None:
-                    try:
-                        session.stop()
-                    except Exception as exc:  # noqa: BLE001
-                        log.debug("oakd: stop failed: %s", exc)
-            if self._stop.wait(backoff):
+            if not self._session(backoff) or backoff.wait(self._stop):
                 break
-            backoff = min(backoff * 2.0, c.reconnect_backoff_max)
+
+    def _session(self, backoff: Backoff) -> bool:
+        """Start one pipeline and stream from it until it stops; False if ``close`` ended it."""
+        session: PipelineSession | None = None
+        try:
+            session = self._factory(self.config)
+            if self._ever_started:
+                self._health.count("reconnects")
+            self._ever_started = True
+            self._health.set_state(HealthState.OK)
+            log.info("oakd: pipeline running")
+            backoff.reset()
+            self._stream(session)
+            if not self._stop.is_set():
+                self._health.error("oakd: device lost (pipeline stopped); restarting")
+                log.warning("oakd: pipeline stopped; restarting")
+        except Exception as exc:  # noqa: BLE001 - depthai raises RuntimeError and others
+            if self._stop.is_set():
+                return False
+            state = HealthState.DEGRADED if self._ever_started else HealthState.FAILED
+            if session is None:
+                self._health.count("start_failures")
+                what = "cannot start"
+            else:
+                what = "device lost"
+            self._health.error(f"oakd: {what} ({type(exc).__name__}: {exc})", state)
+            log.warning("oakd: %s: %s (retry in %.1f s)", what, exc, backoff.delay)
+        finally:
+            if session is not None:
+                try:
+                    session.stop()
+                except Exception as exc:  # noqa: BLE001
+                    log.debug("oakd: stop failed: %s", exc)
+        return True
 
     def _stream(self, s: PipelineSession) -> None:
         """Assemble frames until the pipeline stops or ``close``."""

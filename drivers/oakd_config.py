@@ -1,7 +1,7 @@
 """Configuration of the OAK-D adapter, importable without ``depthai``.
 
 Kept apart from :mod:`drivers.oakd` so that reading or checking the service's
-configuration does not pay the cost of importing the vendor library (seconds of CPU).
+configuration does not import the vendor library.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ Median = Literal["off", "3x3", "5x5", "7x7"]
 
 
 class OakdConfig(BaseModel):
-    """Configuration of the OAK-D (design.md section 6 defaults)."""
+    """Configuration of the OAK-D: the stereo pipeline, the host queues and the reconnect
+    backoff (waits doubling from ``reconnect_backoff_min`` up to ``reconnect_backoff_max``)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 

@@ -136,7 +136,7 @@ def arc_increment(d_left: ArrayLike, d_right: ArrayLike, track_width: float) -> 
 
 
 def arc_step(d_left: float, d_right: float, track_width: float) -> tuple[float, float, float]:
-    """Scalar :func:`arc_increment` (plain floats: ~50x faster per call than numpy)."""
+    """Scalar :func:`arc_increment` on plain floats (the reader thread's per-line path)."""
     ds = 0.5 * (d_left + d_right)
     dth = (d_right - d_left) / track_width
     if abs(dth) < 1e-6:

@@ -13,8 +13,10 @@ Robustness (nothing here raises into the caller):
 - a partial line is buffered until its newline arrives;
 - a line whose counters jump implausibly (board reset, ``seq`` restarting at 0) re-baselines
   the counters instead of integrating the jump;
-- a port that disappears is reopened with exponential backoff; health is DEGRADED meanwhile
-  (and when no valid line arrived for ``stale_after`` s). Use a stable path
+- a port that disappears is reopened at once; a port that cannot be opened is retried after
+  waits that double from ``reconnect_backoff_min`` up to ``reconnect_backoff_max`` and fall
+  back to the minimum after a successful open (:class:`drivers.backoff.Backoff`); health is
+  DEGRADED meanwhile (and when no valid line arrived for ``stale_after`` s). Use a stable path
   (``/dev/serial/by-id/...``, or the emulator's symlink) since the device may come back under
   another ``/dev/tty*`` name.
 
@@ -22,7 +24,8 @@ Timestamps: each increment is stamped with the board's sample time mapped to the
 (seconds since the epoch) by the smallest observed (host receive - board time) offset over the
 last few seconds, so serial latency jitter does not enter the stamps.
 
-CPU: the thread blocks in ``select`` (pyserial read with a timeout); idle it costs nothing.
+Waiting: the thread blocks in ``select`` (pyserial read with a ``read_timeout`` slice), it
+never spins.
 
 Usage::
 
@@ -42,6 +45,7 @@ import time
 import serial
 from pydantic import BaseModel, ConfigDict, Field
 
+from drivers.backoff import Backoff
 from drivers.interfaces import DeviceHealth, HealthState, HealthTracker, OdometryIncrement
 from drivers.odometry_protocol import (
     MAX_LINE,
@@ -148,15 +152,18 @@ class SerialOdometry:
     # reader thread
     # ---------------------------------------------------------------------------------------
     def _run(self) -> None:
+        """Open the port (with backoff while it cannot be opened) and pump it until ``close``.
+
+        A lost port is reopened at once; only failed opens wait, ``reconnect_backoff_min``
+        doubling per failure up to ``reconnect_backoff_max``."""
         c = self.config
-        backoff = c.reconnect_backoff_min
+        backoff = Backoff(c.reconnect_backoff_min, c.reconnect_backoff_max)
         while not self._stop.is_set():
             if self._ser is None:
                 if not self._open_port():
-                    self._stop.wait(backoff)
-                    backoff = min(backoff * 2.0, c.reconnect_backoff_max)
+                    backoff.wait(self._stop)
                     continue
-                backoff = c.reconnect_backoff_min
+                backoff.reset()
             try:
                 self._pump()
             except (serial.SerialException, OSError, termios.error, TypeError) as exc:

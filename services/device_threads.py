@@ -1,14 +1,14 @@
 """Concurrent readers of the robot's three devices, and the buffers the loop reads them from.
 
 The localization loop (:mod:`services.daemon`) must never wait on a device. Each device gets
-its own thread, which owns the driver (opening it, reading it, and re-creating it with
-backoff when it raises) and leaves what it read in a buffer built for the question the loop
-asks:
+its own thread (:class:`DeviceWorker`), which owns the driver and leaves what it read in a
+buffer built for the question the loop asks. The drivers own device resilience (reconnect
+with :class:`drivers.backoff.Backoff`, never raising on a glitch); a worker only re-creates a
+driver whose factory, ``open`` or ``read`` raised, after the same kind of backoff.
 
 - camera -> :class:`FrameMailbox`: a mailbox of ONE frame. A frame that arrives while the
-  previous one is still waiting replaces it, and the replaced frame is counted as dropped
-  (issue 5: "a frame that arrives while the previous one is being processed is dropped and
-  counted, not queued without bound"). The loop always gets the newest frame.
+  previous one is still waiting replaces it, and the replaced frame is counted as dropped,
+  so frames never queue up behind a slow update. The loop always gets the newest frame.
 - odometry -> :class:`OdometryBuffer`: stamped increments ``(t0, t1, dx, dy, dtheta)``;
   :meth:`OdometryBuffer.take_until` composes everything up to a frame's stamp (splitting the
   increment that straddles it in proportion to time) into the action ``u_t`` of the paper's
@@ -18,7 +18,8 @@ asks:
   :meth:`HeadHistory.pan_at` interpolates the pan at a frame's capture time (the camera
   heading is the robot heading plus that pan). The head thread also sends the goals the loop
   asks for (:meth:`HeadWorker.command`, latest goal wins), so a slow or silent servo bus
-  (the Dynamixel SDK waits ~34 ms for a silent id) never stalls the loop.
+  (the Dynamixel SDK waits 2 x ``LATENCY_TIMER`` + 2 ms for a silent id) never stalls the
+  loop.
 
 Every worker reports a :class:`drivers.interfaces.DeviceHealth`: the driver's own health, or
 FAILED with the error when the driver cannot even be created or opened.
@@ -42,16 +43,33 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
 import numpy as np
 
-from drivers.interfaces import DeviceHealth, HeadState, HealthState, OdometryIncrement
+from drivers.backoff import Backoff
+from drivers.interfaces import (
+    Device,
+    DeviceHealth,
+    HeadState,
+    HealthState,
+    Odometry,
+    OdometryIncrement,
+    PanTiltHead,
+    StereoCamera,
+    StereoFrame,
+)
 from lino_loc.poses import between, compose
 
 log = logging.getLogger("lino_loc.service.devices")
 
 T = TypeVar("T")
+D = TypeVar("D", bound=Device)
+
+#: Factories of the three drivers (called again to re-create a driver that raised).
+CameraFactory = Callable[[], StereoCamera]
+OdometryFactory = Callable[[], Odometry]
+HeadFactory = Callable[[], PanTiltHead]
 
 # --------------------------------------------------------------------------------------------
 # camera: a mailbox of one
@@ -243,15 +261,23 @@ class HeadHistory:
 # --------------------------------------------------------------------------------------------
 
 
-class DeviceWorker(threading.Thread):
-    """A thread that owns one driver: creates it with ``factory``, runs ``_step`` on it until
-    stopped, and re-creates it with exponential backoff when anything raises."""
+class DeviceWorker(threading.Thread, Generic[D]):
+    """A thread that owns one driver and calls ``_step`` on it until stopped.
+
+    The drivers reconnect their devices themselves and never raise on a device glitch, so the
+    worker only has to obtain a driver: it calls ``factory()`` then ``open()``, and while
+    either raises it records the error (health FAILED, counter ``worker_failures``) and tries
+    again after ``Backoff(backoff_min, backoff_max)`` (:mod:`drivers.backoff`). A ``_step``
+    that raises breaks the driver's contract: it is logged with its traceback, counted the
+    same way, and the driver is closed and re-created through the same backoff. Every step
+    that returns resets the backoff.
+    """
 
     kind = "device"
 
     def __init__(
         self,
-        factory: Callable[[], Any],
+        factory: Callable[[], D],
         *,
         backoff_min: float = 0.2,
         backoff_max: float = 5.0,
@@ -259,13 +285,12 @@ class DeviceWorker(threading.Thread):
         super().__init__(name=f"{self.kind}-worker", daemon=True)
         self._factory = factory
         self._stop_event = threading.Event()
-        self._device: Any = None
+        self._device: D | None = None
         self._lock = threading.Lock()
         self._error: str | None = None
         self._error_stamp: float | None = None
         self._failures = 0
-        self._backoff_min = backoff_min
-        self._backoff_max = backoff_max
+        self._backoff = Backoff(backoff_min, backoff_max)
 
     # -- lifecycle ---------------------------------------------------------------------
     def stop(self, timeout: float = 3.0) -> None:
@@ -280,46 +305,63 @@ class DeviceWorker(threading.Thread):
         return self._stop_event.is_set()
 
     def run(self) -> None:
-        backoff = self._backoff_min
         while not self._stop_event.is_set():
             try:
-                if self._device is None:
-                    dev = self._factory()
-                    opener = getattr(dev, "open", None)
-                    if opener is not None:
-                        opener()
-                    with self._lock:
-                        self._device = dev
-                        self._error = None
-                    self._opened(dev)
-                self._step(self._device)
-                backoff = self._backoff_min
+                device = self._device if self._device is not None else self._create()
+                self._step(device)
             except Exception as exc:  # noqa: BLE001 - a device must never end the daemon
-                msg = f"{self.kind}: {type(exc).__name__}: {exc}"
-                with self._lock:
-                    self._error = msg
-                    self._error_stamp = time.time()
-                    self._failures += 1
-                log.warning("%s (retry in %.1f s)", msg, backoff)
+                self._failed(exc)
                 self._close_device()
-                if self._stop_event.wait(backoff):
+                if self._backoff.wait(self._stop_event):
                     break
-                backoff = min(backoff * 2.0, self._backoff_max)
+            else:
+                self._backoff.reset()
+
+    def _create(self) -> D:
+        """A new driver from the factory, opened (closed again if ``open`` raises)."""
+        device = self._factory()
+        try:
+            device.open()
+        except Exception:
+            self._close(device)
+            raise
+        with self._lock:
+            self._device = device
+            self._error = None
+        self._opened(device)
+        return device
+
+    def _failed(self, exc: Exception) -> None:
+        """Record a raising factory, ``open`` or ``_step`` (the last with its traceback)."""
+        msg = f"{self.kind}: {type(exc).__name__}: {exc}"
+        with self._lock:
+            running = self._device is not None
+            self._error = msg
+            self._error_stamp = time.time()
+            self._failures += 1
+        retry = self._backoff.delay
+        if running:
+            log.error("%s: driver raised (retry in %.1f s)", msg, retry, exc_info=exc)
+        else:
+            log.warning("%s (retry in %.1f s)", msg, retry)
 
     def _close_device(self) -> None:
         with self._lock:
             dev, self._device = self._device, None
         if dev is not None:
-            try:
-                dev.close()
-            except Exception as exc:  # noqa: BLE001
-                log.debug("%s: close failed: %s", self.kind, exc)
+            self._close(dev)
+
+    def _close(self, device: D) -> None:
+        try:
+            device.close()
+        except Exception as exc:  # noqa: BLE001
+            log.debug("%s: close failed: %s", self.kind, exc)
 
     # -- hooks -------------------------------------------------------------------------
-    def _opened(self, device: Any) -> None:
+    def _opened(self, device: D) -> None:
         pass
 
-    def _step(self, device: Any) -> None:
+    def _step(self, device: D) -> None:
         raise NotImplementedError
 
     def _wake(self) -> None:
@@ -327,6 +369,8 @@ class DeviceWorker(threading.Thread):
 
     # -- health ------------------------------------------------------------------------
     def health(self) -> DeviceHealth:
+        """The driver's health (plus ``worker_failures`` once any), or FAILED with the error
+        while there is no driver."""
         with self._lock:
             dev, err, stamp, failures = self._device, self._error, self._error_stamp, self._failures
         if dev is None or err is not None:
@@ -347,54 +391,56 @@ class DeviceWorker(threading.Thread):
         return h
 
 
-class CameraWorker(DeviceWorker):
+class CameraWorker(DeviceWorker[StereoCamera]):
     """Reads frames (``StereoCamera.read``) into a :class:`FrameMailbox`."""
 
     kind = "camera"
 
-    def __init__(self, factory: Callable[[], Any], mailbox: FrameMailbox[Any], **kw: Any) -> None:
-        super().__init__(factory, **kw)
+    def __init__(
+        self, factory: CameraFactory, mailbox: FrameMailbox[StereoFrame], **backoff: float
+    ) -> None:
+        super().__init__(factory, **backoff)
         self.mailbox = mailbox
         self.last_frame_mono: float | None = None
 
-    def _step(self, device: Any) -> None:
+    def _step(self, device: StereoCamera) -> None:
         frame = device.read(timeout=0.2)
         if frame is not None:
             self.last_frame_mono = time.monotonic()
             self.mailbox.put(frame)
 
 
-class OdometryWorker(DeviceWorker):
+class OdometryWorker(DeviceWorker[Odometry]):
     """Moves increments (``Odometry.read``) into an :class:`OdometryBuffer`."""
 
     kind = "odometry"
 
-    def __init__(self, factory: Callable[[], Any], buffer: OdometryBuffer, **kw: Any) -> None:
-        super().__init__(factory, **kw)
+    def __init__(self, factory: OdometryFactory, buffer: OdometryBuffer, **backoff: float) -> None:
+        super().__init__(factory, **backoff)
         self.buffer = buffer
 
-    def _step(self, device: Any) -> None:
+    def _step(self, device: Odometry) -> None:
         incs = device.read(timeout=0.1)
         if incs:
             self.buffer.add(incs)
 
 
-class HeadWorker(DeviceWorker):
+class HeadWorker(DeviceWorker[PanTiltHead]):
     """Polls the head's present angles into a :class:`HeadHistory` every ``period`` s and
-    sends the latest goal from :meth:`command` (all bus traffic in this thread)."""
+    sends the latest goal from :meth:`command` (all bus traffic in this thread). A re-created
+    driver is sent the last commanded goal again."""
 
     kind = "head"
 
     def __init__(
-        self, factory: Callable[[], Any], history: HeadHistory, period: float = 0.02, **kw: Any
+        self, factory: HeadFactory, history: HeadHistory, period: float = 0.02, **backoff: float
     ) -> None:
-        super().__init__(factory, **kw)
+        super().__init__(factory, **backoff)
         self.history = history
         self.period = period
         self._goal: tuple[float, float] | None = None
         self._goal_event = threading.Event()
         self.commanded: tuple[float, float] | None = None
-        self.limits: Any = None
 
     def command(self, pan: float, tilt: float = 0.0) -> None:
         """Ask for new goal angles (sent by the head thread; a newer goal replaces it)."""
@@ -405,12 +451,11 @@ class HeadWorker(DeviceWorker):
     def _wake(self) -> None:
         self._goal_event.set()
 
-    def _opened(self, device: Any) -> None:
-        self.limits = getattr(device, "limits", None)
+    def _opened(self, device: PanTiltHead) -> None:
         if self.commanded is not None and self._goal is None:
             self.command(*self.commanded)  # re-send the last goal to a re-created driver
 
-    def _step(self, device: Any) -> None:
+    def _step(self, device: PanTiltHead) -> None:
         with self._lock:
             goal, self._goal = self._goal, None
         self._goal_event.clear()

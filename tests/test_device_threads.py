@@ -197,6 +197,9 @@ def test_odometry_worker_fills_the_buffer() -> None:
         def __init__(self) -> None:
             self.incs = _arc_increments(0.5, 0.0, 0.0, 0.02, 5)
 
+        def open(self) -> None:
+            pass
+
         def read(self, timeout: float | None = None) -> list[OdometryIncrement]:
             out, self.incs = self.incs, []
             if not out:
@@ -228,6 +231,9 @@ def test_head_worker_sends_latest_goal_and_records_history() -> None:
             self.pan = 0.0
             self.commands: list[float] = []
 
+        def open(self) -> None:
+            pass
+
         def command(self, pan: float, tilt: float) -> HeadCommand:
             self.commands.append(pan)
             self.pan = min(pan, 1.0)
@@ -258,3 +264,80 @@ def test_head_worker_sends_latest_goal_and_records_history() -> None:
         assert dev.commands[:2] == [0.3, 2.0]
     finally:
         w.stop()
+
+
+class _BrokenCamera:
+    """Opens, then raises in ``read`` after ``frames`` frames (a driver breaking its promise)."""
+
+    opened = 0
+    closed = 0
+
+    def __init__(self, frames: int, open_raises: bool = False) -> None:
+        self.frames = frames
+        self.open_raises = open_raises
+
+    def open(self) -> None:
+        type(self).opened += 1
+        if self.open_raises:
+            raise RuntimeError("open failed")
+
+    def read(self, timeout: float | None = None) -> int | None:
+        time.sleep(0.005)
+        if self.frames <= 0:
+            raise ValueError("driver bug")
+        self.frames -= 1
+        return self.frames
+
+    def health(self) -> DeviceHealth:
+        return DeviceHealth(HealthState.OK)
+
+    def close(self) -> None:
+        type(self).closed += 1
+
+
+def test_a_raising_read_recreates_the_driver_after_the_backoff() -> None:
+    _BrokenCamera.opened = _BrokenCamera.closed = 0
+    box: FrameMailbox[int] = FrameMailbox()
+    w = CameraWorker(lambda: _BrokenCamera(frames=2), box, backoff_min=0.05, backoff_max=0.05)
+    w.start()
+    try:
+        deadline = time.monotonic() + 5
+        while _BrokenCamera.opened < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert _BrokenCamera.opened >= 3  # re-created after each raise
+        assert _BrokenCamera.closed >= 2  # the broken driver was closed each time
+        assert w.health().counters["worker_failures"] >= 2
+    finally:
+        w.stop()
+    assert not w.is_alive()
+
+
+def test_a_driver_whose_open_raises_is_closed_and_retried() -> None:
+    _BrokenCamera.opened = _BrokenCamera.closed = 0
+    box: FrameMailbox[int] = FrameMailbox()
+    w = CameraWorker(
+        lambda: _BrokenCamera(1, open_raises=True), box, backoff_min=0.02, backoff_max=0.02
+    )
+    w.start()
+    try:
+        deadline = time.monotonic() + 5
+        while _BrokenCamera.opened < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        h = w.health()
+        assert h.state is HealthState.FAILED and "open failed" in (h.last_error or "")
+    finally:
+        w.stop()
+    assert _BrokenCamera.closed == _BrokenCamera.opened >= 3
+
+
+def test_stop_ends_a_long_backoff_promptly() -> None:
+    def factory() -> _FlakyCamera:
+        raise OSError("not plugged in")
+
+    w = CameraWorker(factory, FrameMailbox(), backoff_min=30.0, backoff_max=60.0)
+    w.start()
+    time.sleep(0.05)
+    t0 = time.monotonic()
+    w.stop()
+    assert not w.is_alive() and time.monotonic() - t0 < 2.0
+    assert w.health().counters["worker_failures"] == 1
