@@ -723,26 +723,9 @@ def build_map(
     mapping light). ``channels``: ``("intensity",)`` or ``("intensity", "disparity")``.
     ``progress(done, total)`` is called while images are read.
     """
-    if preprocess not in PREPROCESS_METHODS:
-        raise LinoLocError(f"preprocess: unknown method {preprocess!r} (choose from {', '.join(PREPROCESS_METHODS)})")
-    if method not in PCA_METHODS:
-        raise LinoLocError(f"PCA method: unknown {method!r} (choose from {', '.join(PCA_METHODS)})")
-    w, h = int(size[0]), int(size[1])
-    cam = dataset.meta.camera
-    if not (0 < w <= cam.width and 0 < h <= cam.height):
-        raise LinoLocError(f"map size {w}x{h} must be positive and at most the camera's {cam.width}x{cam.height}")
-    virtual = virtual_setup(cam, (w, h), virtual_offsets)  # checked before any image is read
-    ds = dataset
-    if condition is not None:
-        ds = dataset.where(condition)
-        if len(ds) == 0:
-            have = sorted({c for c in dataset.conditions if c is not None})
-            raise LinoLocError(f"{dataset.root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
-    n = len(ds)
-    if n_features < 1 or n_features > min(n - 1, w * h):
-        raise LinoLocError(
-            f"{dataset.root}: {n_features} features asked but {n} images of {w}x{h} allow at most {max(min(n - 1, w * h), 0)}"
-        )
+    w, h = _checked_map_settings(preprocess, method, size, dataset.meta.camera)
+    virtual = virtual_setup(dataset.meta.camera, (w, h), virtual_offsets)  # checked before any image is read
+    ds = _map_rows(dataset, condition, n_features, (w, h))
     unknown = [c for c in channels if c not in ("intensity", "disparity")]
     if unknown or "intensity" not in channels:
         raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
@@ -761,3 +744,39 @@ def build_map(
         name=ds.meta.name,
         condition=condition,
     )
+
+
+def _checked_map_settings(
+    preprocess: str, method: str, size: tuple[int, int], cam: CameraInfo
+) -> tuple[int, int]:
+    """The map size (w, h) as ints; LinoLocError for an unknown preprocessing or PCA method,
+    or a size not positive or larger than the camera's image."""
+    if preprocess not in PREPROCESS_METHODS:
+        raise LinoLocError(f"preprocess: unknown method {preprocess!r} (choose from {', '.join(PREPROCESS_METHODS)})")
+    if method not in PCA_METHODS:
+        raise LinoLocError(f"PCA method: unknown {method!r} (choose from {', '.join(PCA_METHODS)})")
+    w, h = int(size[0]), int(size[1])
+    if not (0 < w <= cam.width and 0 < h <= cam.height):
+        raise LinoLocError(f"map size {w}x{h} must be positive and at most the camera's {cam.width}x{cam.height}")
+    return w, h
+
+
+def _map_rows(dataset: Dataset, condition: str | None, n_features: int, size: tuple[int, int]) -> Dataset:
+    """The rows of ``dataset`` recorded under ``condition`` (all rows for None).
+
+    LinoLocError if no row has that condition, or if ``n_features`` is not in
+    [1, min(n - 1, w h)] for the n rows kept and the map size (w, h).
+    """
+    w, h = size
+    ds = dataset
+    if condition is not None:
+        ds = dataset.where(condition)
+        if len(ds) == 0:
+            have = sorted({c for c in dataset.conditions if c is not None})
+            raise LinoLocError(f"{dataset.root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
+    n = len(ds)
+    if n_features < 1 or n_features > min(n - 1, w * h):
+        raise LinoLocError(
+            f"{dataset.root}: {n_features} features asked but {n} images of {w}x{h} allow at most {max(min(n - 1, w * h), 0)}"
+        )
+    return ds

@@ -98,6 +98,79 @@ def _one_line_validation(exc: ValidationError) -> str:
     return f"field '{loc}': {err.get('msg', 'invalid')}{extra}"
 
 
+def _poses_header(path: Path) -> tuple[Any, list[str]]:
+    """A CSV reader over the pose table ``path`` positioned after its header, and the header
+    (cells stripped). LinoLocError if the file is missing, not UTF-8, empty or unparsable on
+    line 1, lacks a required column, or repeats or adds an unknown column."""
+    if not path.is_file():
+        raise LinoLocError(f"{path}: missing")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise LinoLocError(f"{path}: not a UTF-8 text file") from None
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise LinoLocError(f"{path}: empty file (expected a header row)") from None
+    except csv.Error as exc:
+        raise LinoLocError(f"{path}: line 1: {exc}") from None
+    for col in REQUIRED_COLUMNS:
+        if col not in header:
+            raise LinoLocError(f"{path}: header: missing column '{col}' (have {','.join(header)})")
+    seen: set[str] = set()
+    for col in header:
+        if col in seen:
+            raise LinoLocError(f"{path}: header: duplicate column '{col}'")
+        if col not in REQUIRED_COLUMNS and col not in OPTIONAL_COLUMNS:
+            raise LinoLocError(
+                f"{path}: header: unknown column '{col}' (known: "
+                f"{','.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)})"
+            )
+        seen.add(col)
+    return reader, header
+
+
+def _finite_cell(cell: str, where: str, col: str) -> float:
+    """The number in ``cell``; LinoLocError naming ``where`` and ``col`` if it is not a
+    number or not finite."""
+    try:
+        v = float(cell)
+    except ValueError:
+        raise LinoLocError(f"{where}, field '{col}': not a number ({cell!r})") from None
+    if not math.isfinite(v):
+        raise LinoLocError(f"{where}, field '{col}': not finite ({cell!r})")
+    return v
+
+
+def _pose_row(
+    cells: list[str], idx: dict[str, int], where: str, root: Path
+) -> tuple[tuple[float, float, float], dict[str, str | None], str | None, float]:
+    """One row of the pose table: (x, y, theta), the file of each of ``_FILE_COLUMNS``
+    (relative to ``root``; None when the cell is empty or the column absent), the condition
+    (None when empty) and the stamp (nan when empty). LinoLocError naming ``where`` for a
+    field count that differs from the header's, a bad number, an empty image or a file not
+    found."""
+    if len(cells) != len(idx):
+        raise LinoLocError(f"{where}: {len(cells)} fields, header has {len(idx)}")
+    x, y, theta = (_finite_cell(cells[idx[col]].strip(), where, col) for col in ("x", "y", "theta"))
+    files: dict[str, str | None] = {}
+    for col in _FILE_COLUMNS:
+        cell = cells[idx[col]].strip() if col in idx else ""
+        if not cell:
+            if col == "image":
+                raise LinoLocError(f"{where}, field 'image': empty")
+            files[col] = None
+            continue
+        if not os.path.isfile(root / cell):
+            raise LinoLocError(f"{where}, field '{col}': file not found: {root / cell}")
+        files[col] = cell
+    cond = cells[idx["condition"]].strip() if "condition" in idx else ""
+    st = cells[idx["stamp"]].strip() if "stamp" in idx else ""
+    stamp = _finite_cell(st, where, "stamp") if st else math.nan
+    return (x, y, theta), files, cond or None, stamp
+
+
 def _atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder and a rename."""
     with atomic_write(path, "w", encoding="utf-8", newline="") as fh:
@@ -314,84 +387,28 @@ class Dataset:
     def _read_poses(
         root: Path, path: Path
     ) -> tuple[np.ndarray, dict[str, list[str | None]], list[str | None], np.ndarray]:
-        if not path.is_file():
-            raise LinoLocError(f"{path}: missing")
-        try:
-            text = path.read_text(encoding="utf-8")
-        except UnicodeDecodeError:
-            raise LinoLocError(f"{path}: not a UTF-8 text file") from None
-        reader = csv.reader(io.StringIO(text))
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise LinoLocError(f"{path}: empty file (expected a header row)") from None
-        except csv.Error as exc:
-            raise LinoLocError(f"{path}: line 1: {exc}") from None
-        for col in REQUIRED_COLUMNS:
-            if col not in header:
-                raise LinoLocError(f"{path}: header: missing column '{col}' (have {','.join(header)})")
-        seen: set[str] = set()
-        for col in header:
-            if col in seen:
-                raise LinoLocError(f"{path}: header: duplicate column '{col}'")
-            if col not in REQUIRED_COLUMNS and col not in OPTIONAL_COLUMNS:
-                raise LinoLocError(
-                    f"{path}: header: unknown column '{col}' (known: "
-                    f"{','.join(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)})"
-                )
-            seen.add(col)
+        """The pose table ``path``: poses (N, 3), the files of each column of
+        ``_FILE_COLUMNS`` (None where empty), the conditions and the stamps (nan where
+        empty). Blank rows are skipped; LinoLocError (naming the line) for a bad header or
+        row, a CSV syntax error, or no row at all."""
+        reader, header = _poses_header(path)
         idx = {c: header.index(c) for c in header}
         poses: list[tuple[float, float, float]] = []
         files: dict[str, list[str | None]] = {c: [] for c in _FILE_COLUMNS}
         conditions: list[str | None] = []
         stamps: list[float] = []
-
-        def exists(rel: str) -> bool:
-            return os.path.isfile(root / rel)
-
         line = 1
         try:
             for cells in reader:
                 line = reader.line_num
                 if not cells or all(not c.strip() for c in cells):
                     continue
-                where = f"{path}: line {line}"
-                if len(cells) != len(header):
-                    raise LinoLocError(f"{where}: {len(cells)} fields, header has {len(header)}")
-                vals = []
-                for col in ("x", "y", "theta"):
-                    cell = cells[idx[col]].strip()
-                    try:
-                        v = float(cell)
-                    except ValueError:
-                        raise LinoLocError(f"{where}, field '{col}': not a number ({cell!r})") from None
-                    if not math.isfinite(v):
-                        raise LinoLocError(f"{where}, field '{col}': not finite ({cell!r})")
-                    vals.append(v)
-                poses.append((vals[0], vals[1], vals[2]))
+                pose, row_files, cond, stamp = _pose_row(cells, idx, f"{path}: line {line}", root)
+                poses.append(pose)
                 for col in _FILE_COLUMNS:
-                    cell = cells[idx[col]].strip() if col in idx else ""
-                    if not cell:
-                        if col == "image":
-                            raise LinoLocError(f"{where}, field 'image': empty")
-                        files[col].append(None)
-                        continue
-                    if not exists(cell):
-                        raise LinoLocError(f"{where}, field '{col}': file not found: {root / cell}")
-                    files[col].append(cell)
-                cond = cells[idx["condition"]].strip() if "condition" in idx else ""
-                conditions.append(cond or None)
-                st = cells[idx["stamp"]].strip() if "stamp" in idx else ""
-                if st:
-                    try:
-                        s = float(st)
-                    except ValueError:
-                        raise LinoLocError(f"{where}, field 'stamp': not a number ({st!r})") from None
-                    if not math.isfinite(s):
-                        raise LinoLocError(f"{where}, field 'stamp': not finite ({st!r})")
-                    stamps.append(s)
-                else:
-                    stamps.append(math.nan)
+                    files[col].append(row_files[col])
+                conditions.append(cond)
+                stamps.append(stamp)
         except csv.Error as exc:
             raise LinoLocError(f"{path}: line {line + 1}: {exc}") from None
         if not poses:

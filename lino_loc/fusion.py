@@ -102,47 +102,16 @@ def product(a: PoseMixture, b: PoseMixture) -> PoseMixture:
 
     The outlier components are uniform densities over ``a.bounds`` (``b``'s bounds are assumed
     to be the same area); inside that area ``log_pdf`` of the result equals
-    ``a.log_pdf + b.log_pdf`` exactly.
+    ``a.log_pdf + b.log_pdf`` exactly. Components: the J_a * J_b kernel products
+    (:func:`_kernel_products`), then the cross terms with the outliers
+    (:func:`_outlier_cross_terms`).
     """
     bounds = a.bounds if a.bounds is not None else b.bounds
-    # All pairs of kernels.
-    ma, mb = a.poses[:, None, :], b.poses[None, :, :]
-    sa2, sb2 = a.sigma_xy[:, None] ** 2, b.sigma_xy[None, :] ** 2
-    ssum = sa2 + sb2
-    dxy2 = (ma[..., 0] - mb[..., 0]) ** 2 + (ma[..., 1] - mb[..., 1]) ** 2
-    log_c_xy = -dxy2 / (2.0 * ssum) - (LOG_2PI + np.log(ssum))
-    mx = (ma[..., 0] * sb2 + mb[..., 0] * sa2) / ssum
-    my = (ma[..., 1] * sb2 + mb[..., 1] * sa2) / ssum
-    s_xy = np.sqrt(sa2 * sb2 / ssum)
-    ka, kb = a.kappa[:, None], b.kappa[None, :]
-    cx = ka * np.cos(ma[..., 2]) + kb * np.cos(mb[..., 2])
-    cy = ka * np.sin(ma[..., 2]) + kb * np.sin(mb[..., 2])
-    r = np.hypot(cx, cy)
-    mth = wrap_angle(np.arctan2(cy, cx))
-    log_c_th = log_von_mises_norm(r) - log_von_mises_norm(ka) - log_von_mises_norm(kb)
-    # A vanishing R (opposite headings, equal kappas) gives a flat theta factor: keep a tiny
-    # concentration so that sigma_theta stays finite (the kernel is then ~uniform in theta).
-    r = np.maximum(r, 1e-9)
-    log_w = a.log_weights[:, None] + b.log_weights[None, :] + log_c_xy + log_c_th
-    poses = [np.stack([mx, my, mth], axis=-1).reshape(-1, 3)]
-    lws = [log_w.reshape(-1)]
-    sxy = [s_xy.reshape(-1)]
-    sth = [(1.0 / np.sqrt(r)).reshape(-1)]
+    kp_poses, kp_lw, kp_sxy, kp_sth = _kernel_products(a, b)
+    poses, lws, sxy, sth = [kp_poses], [kp_lw], [kp_sxy], [kp_sth]
     out = -math.inf
     if bounds is not None:
-        lu = bounds.log_uniform_density
-        # uniform_a x kernels_b and kernels_a x uniform_b, and uniform x uniform.
-        if a.outlier_log_weight > -math.inf:
-            poses.append(b.poses)
-            lws.append(b.log_weights + a.outlier_log_weight + lu)
-            sxy.append(b.sigma_xy)
-            sth.append(b.sigma_theta)
-        if b.outlier_log_weight > -math.inf:
-            poses.append(a.poses)
-            lws.append(a.log_weights + b.outlier_log_weight + lu)
-            sxy.append(a.sigma_xy)
-            sth.append(a.sigma_theta)
-        out = a.outlier_log_weight + b.outlier_log_weight + lu
+        out = _outlier_cross_terms(a, b, bounds.log_uniform_density, poses, lws, sxy, sth)
     mix = _from_unnormalized(
         np.concatenate(poses),
         np.concatenate(lws),
@@ -160,6 +129,65 @@ def product(a: PoseMixture, b: PoseMixture) -> PoseMixture:
         mix.bounds,
         mix.log_scale + a.log_scale + b.log_scale,
     )
+
+
+def _kernel_products(
+    a: PoseMixture, b: PoseMixture
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """All J_a * J_b products of a kernel of ``a`` and one of ``b`` (row-major in (a, b)):
+    poses (J_a J_b, 3), unnormalized log-weights, sigma_xy and sigma_theta (J_a J_b,), by the
+    Gaussian and von Mises product formulas of the module docstring.
+
+    A vanishing R (opposite headings, equal kappas) gives a flat theta factor: R is floored
+    at 1e-9 so that sigma_theta stays finite (the kernel is then ~uniform in theta).
+    """
+    ma, mb = a.poses[:, None, :], b.poses[None, :, :]
+    sa2, sb2 = a.sigma_xy[:, None] ** 2, b.sigma_xy[None, :] ** 2
+    ssum = sa2 + sb2
+    dxy2 = (ma[..., 0] - mb[..., 0]) ** 2 + (ma[..., 1] - mb[..., 1]) ** 2
+    log_c_xy = -dxy2 / (2.0 * ssum) - (LOG_2PI + np.log(ssum))
+    mx = (ma[..., 0] * sb2 + mb[..., 0] * sa2) / ssum
+    my = (ma[..., 1] * sb2 + mb[..., 1] * sa2) / ssum
+    s_xy = np.sqrt(sa2 * sb2 / ssum)
+    ka, kb = a.kappa[:, None], b.kappa[None, :]
+    cx = ka * np.cos(ma[..., 2]) + kb * np.cos(mb[..., 2])
+    cy = ka * np.sin(ma[..., 2]) + kb * np.sin(mb[..., 2])
+    r = np.hypot(cx, cy)
+    mth = wrap_angle(np.arctan2(cy, cx))
+    log_c_th = log_von_mises_norm(r) - log_von_mises_norm(ka) - log_von_mises_norm(kb)
+    r = np.maximum(r, 1e-9)
+    log_w = a.log_weights[:, None] + b.log_weights[None, :] + log_c_xy + log_c_th
+    return (
+        np.stack([mx, my, mth], axis=-1).reshape(-1, 3),
+        log_w.reshape(-1),
+        s_xy.reshape(-1),
+        (1.0 / np.sqrt(r)).reshape(-1),
+    )
+
+
+def _outlier_cross_terms(
+    a: PoseMixture,
+    b: PoseMixture,
+    lu: float,
+    poses: list[np.ndarray],
+    lws: list[np.ndarray],
+    sxy: list[np.ndarray],
+    sth: list[np.ndarray],
+) -> float:
+    """Append the components uniform_a x kernels_b and kernels_a x uniform_b (each present
+    when that mixture has an outlier) to the component lists, with ``lu`` the log uniform
+    density of the area; return the log-weight of uniform_a x uniform_b."""
+    if a.outlier_log_weight > -math.inf:
+        poses.append(b.poses)
+        lws.append(b.log_weights + a.outlier_log_weight + lu)
+        sxy.append(b.sigma_xy)
+        sth.append(b.sigma_theta)
+    if b.outlier_log_weight > -math.inf:
+        poses.append(a.poses)
+        lws.append(a.log_weights + b.outlier_log_weight + lu)
+        sxy.append(a.sigma_xy)
+        sth.append(a.sigma_theta)
+    return a.outlier_log_weight + b.outlier_log_weight + lu
 
 
 def conjunctive(mixtures: list[PoseMixture]) -> PoseMixture:

@@ -51,6 +51,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -419,8 +420,27 @@ def fit_pca_missing(
     SQUAREM reaches a given log-likelihood in fewer iterations (see docs/results.md,
     'EM-PCA with missing data'). ``log_likelihood`` records the values at the accepted
     iterates. Deterministic for a given ``seed`` (used only by the randomized initial SVD of
-    large problems).
+    large problems). LinoLocError for data that is not 2-D or has no valid value,
+    ``n_components`` outside [1, min(N, D)], or another ``dtype``.
     """
+    a, d = _checked_data(X, n_components, dtype)
+    rng = np.random.default_rng(seed)
+    data, mu0, colcount = _centred_data(a, dtype, min_sigma2, px_em)
+    W, sigma2 = _initial_params(data, d, rng)
+    mu = np.zeros(data.X0.shape[1])
+    fit = _run_em(W, mu, sigma2, data, max_iter, tol, subspace_tol, accelerate)
+    if not fit.converged:
+        log.info(
+            "EM-PCA stopped after max_iter=%d iterations without reaching the tolerance",
+            fit.n_iter,
+        )
+    return _fitted_model(fit, mu0, data.seen, colcount)
+
+
+def _checked_data(X: ArrayLike, n_components: int, dtype: type) -> tuple[NDArray, int]:
+    """X as a floating (N, D) array (other dtypes cast to float64) and the number of
+    components d; LinoLocError if X is not 2-D, d is not in [1, min(N, D)] or ``dtype`` is
+    neither float64 nor float32."""
     a = np.asarray(X)
     if a.ndim != 2:
         raise LinoLocError(f"PCA data must be (N, D), got shape {a.shape}")
@@ -432,8 +452,19 @@ def fit_pca_missing(
         raise LinoLocError(f"n_components {d} must be between 1 and min(N, D) = {min(n, D)}")
     if dtype not in (np.float64, np.float32):
         raise LinoLocError(f"dtype must be float64 or float32, got {dtype}")
-    rng = np.random.default_rng(seed)
+    return a, d
 
+
+def _centred_data(
+    a: NDArray, dtype: type, min_sigma2: float, px_em: bool
+) -> tuple[_EMData, F64, NDArray[np.intp]]:
+    """The fixed arrays of a fit, the observed per-pixel means mu0 (D,) (0 for pixels never
+    observed) and the per-pixel counts of valid values (D,).
+
+    The data are copied in the working precision ``dtype``, centred by mu0 and set to 0
+    where missing. The sigma^2 floor is ``min_sigma2`` (at least 1e-6 in float32) times the
+    mean observed variance. LinoLocError if no value is valid.
+    """
     mask_b = np.isfinite(a)
     colcount = mask_b.sum(0)
     if colcount.sum() == 0:
@@ -445,42 +476,19 @@ def fit_pca_missing(
     # squares of the log-likelihood no longer cancel large terms, so it stays accurate to
     # ~1e-7 even with float32 products (the convergence test and SQUAREM compare it).
     X0 = np.array(a, dtype=dtype, copy=True)
-    del a
     np.copyto(X0, 0.0, where=~mask_b)
     maskf = mask_b.astype(dtype)
     del mask_b
-    mu0 = np.divide(X0.sum(0, dtype=np.float64), colcount, out=np.zeros(D), where=seen)
+    mu0 = np.divide(X0.sum(0, dtype=np.float64), colcount, out=np.zeros(a.shape[1]), where=seen)
     X0 -= mu0.astype(dtype)
     X0 *= maskf
-    mu = np.zeros(D)
     n_obs = float(colcount.sum())
     rowcount = np.asarray(maskf.sum(1, dtype=np.float64))
     xx_rows = np.einsum("nj,nj->n", X0, X0, dtype=np.float64)  # (N,) sum_j m (x - mu0)^2
-
-    # --- initialisation: plain PCA of the mean-imputed data (missing = mean): X0 itself
     total_var = float(xx_rows.sum() / n_obs)
     # float32 products carry ~1e-7 relative error: keep M_n = W_o^T W_o + sigma^2 I well
     # inside positive definiteness with a larger floor in that precision.
     floor_rel = max(min_sigma2, 1e-6) if dtype == np.float32 else min_sigma2
-    sigma2_floor = max(floor_rel * total_var, 1e-300)
-    V, s = _init_subspace(X0, d, rng)
-    # ML (1/N) variances: complete data start at the PPCA solution
-    lam = s.astype(np.float64) ** 2 / n
-    sse = 0.0
-    Vd = V.astype(dtype)
-    for lo in range(0, n, 512):  # residual of the rank-d fit on observed values, by row blocks
-        blk = X0[lo : lo + 512]
-        r = blk - (blk @ Vd) @ Vd.T
-        r *= maskf[lo : lo + 512]
-        sse += float(np.einsum("nj,nj->", r, r, dtype=np.float64))
-        del blk, r
-    sigma2 = max(sse / n_obs, sigma2_floor)
-    W = (
-        V.astype(np.float64)
-        * np.sqrt(np.maximum(lam - sigma2, 1e-3 * lam.max() + sigma2_floor))[None, :]
-    )
-    W[~seen] = 0.0
-
     data = _EMData(
         X0=X0,
         maskf=maskf,
@@ -490,41 +498,142 @@ def fit_pca_missing(
         n_obs=n_obs,
         seen=seen,
         active=rowcount > 0,
-        sigma2_floor=sigma2_floor,
+        sigma2_floor=max(floor_rel * total_var, 1e-300),
         px_em=px_em,
     )
-    W, mu, sigma2, history, it, converged = _run_em(
-        W, mu, sigma2, data, max_iter, tol, subspace_tol, accelerate
-    )
-    if not converged:
-        log.info("EM-PCA stopped after max_iter=%d iterations without reaching the tolerance", it)
+    return data, mu0, colcount
 
+
+def _initial_params(data: _EMData, d: int, rng: np.random.Generator) -> tuple[F64, float]:
+    """(W (D, d), sigma^2) from plain PCA of the mean-imputed data (the centred ``X0``).
+
+    With the leading singular vectors V and ML (1/N) variances lam_k = s_k^2 / N of X0:
+    sigma^2 = the mean squared residual of the rank-d fit over the observed values (at
+    least the floor), ``W = V diag(sqrt(max(lam - sigma^2, 1e-3 max(lam) + floor)))``, zero
+    rows for pixels never observed. Complete data start at the PPCA solution.
+    """
+    X0, maskf = data.X0, data.maskf
+    n = X0.shape[0]
+    V, s = _init_subspace(X0, d, rng)
+    lam = s.astype(np.float64) ** 2 / n
+    sse = 0.0
+    Vd = V.astype(X0.dtype)
+    for lo in range(0, n, 512):  # residual of the rank-d fit on observed values, by row blocks
+        blk = X0[lo : lo + 512]
+        r = blk - (blk @ Vd) @ Vd.T
+        r *= maskf[lo : lo + 512]
+        sse += float(np.einsum("nj,nj->", r, r, dtype=np.float64))
+        del blk, r
+    sigma2 = max(sse / data.n_obs, data.sigma2_floor)
+    W = (
+        V.astype(np.float64)
+        * np.sqrt(np.maximum(lam - sigma2, 1e-3 * lam.max() + data.sigma2_floor))[None, :]
+    )
+    W[~data.seen] = 0.0
+    return W, sigma2
+
+
+def _fitted_model(
+    fit: _EMResult, mu0: F64, seen: NDArray[np.bool_], colcount: NDArray[np.intp]
+) -> MissingDataPCA:
+    """The model of an EM result on data centred by mu0: the means added back, loadings
+    and means of pixels never observed set to 0, span(W) given an orthonormal basis ordered
+    by variance (``explained_variance = s_k^2 + sigma^2`` with s_k W's singular values)."""
+    W = fit.W
     W[~seen] = 0.0
-    mu = mu + mu0
+    mu = fit.mu + mu0
     mu[~seen] = 0.0
-    # ---- orthonormal basis of span(W), ordered by variance (like plain PCA)
-    U, sv, _ = np.linalg.svd(W, full_matrices=False)  # U (D, d)
-    comps = U.T.copy()
-    # deterministic signs: the largest |loading| of each component is positive
-    big = np.argmax(np.abs(comps), axis=1)
-    signs = np.sign(comps[np.arange(d), big])
-    signs[signs == 0] = 1.0
-    comps *= signs[:, None]
-    comps[:, ~seen] = 0.0
+    comps, sv = _ordered_basis(W, seen)
     return MissingDataPCA(
         mean=mu,
         components=comps,
-        explained_variance=sv**2 + sigma2,
+        explained_variance=sv**2 + fit.sigma2,
         W=W,
-        sigma2=float(sigma2),
+        sigma2=float(fit.sigma2),
         observed_count=colcount.astype(np.int64),
-        log_likelihood=history,
-        n_iter=it,
-        converged=converged,
+        log_likelihood=fit.history,
+        n_iter=fit.n_iter,
+        converged=fit.converged,
     )
 
 
+def _ordered_basis(W: F64, seen: NDArray[np.bool_]) -> tuple[F64, F64]:
+    """(d, D) orthonormal basis of span(W), rows ordered by variance (like plain PCA), and
+    W's singular values (d,). Deterministic signs: the largest |loading| of each row is
+    positive; columns of pixels never observed are 0."""
+    U, sv, _ = np.linalg.svd(W, full_matrices=False)  # U (D, d)
+    comps = U.T.copy()
+    big = np.argmax(np.abs(comps), axis=1)
+    signs = np.sign(comps[np.arange(comps.shape[0]), big])
+    signs[signs == 0] = 1.0
+    comps *= signs[:, None]
+    comps[:, ~seen] = 0.0
+    return comps, sv
+
+
 _Params = tuple[F64, F64, float]
+
+
+class _EMResult(NamedTuple):
+    """The outcome of :func:`_run_em`."""
+
+    W: F64
+    mu: F64
+    sigma2: float
+    history: list[float]  # log-likelihood per observed value at the accepted iterates
+    n_iter: int  # E-steps run
+    converged: bool
+
+
+class _EMLoop:
+    """The EM map of one fit with its counters: E-steps run and the recorded log-likelihoods.
+
+    The stopping rule (:meth:`done`) is that of :func:`fit_pca_missing`.
+    """
+
+    def __init__(self, data: _EMData, tol: float, subspace_tol: float) -> None:
+        self.data = data
+        self.tol = tol
+        self.subspace_tol = subspace_tol
+        self.history: list[float] = []
+        self.it = 0
+
+    def step(self, p: _Params) -> tuple[_Params, float]:
+        """One EM step from p: the next parameters and the log-likelihood at p."""
+        self.it += 1
+        W1, mu1, s1, ll = _em_step(p[0], p[1], p[2], self.data)
+        return (W1, mu1, s1), ll
+
+    def advance(self, p: _Params) -> tuple[_Params, float, bool]:
+        """One EM step from p, its log-likelihood recorded: (next parameters, log-likelihood
+        at p, whether the stopping rule holds)."""
+        p_next, ll = self.step(p)
+        stop = self.done(p, p_next, ll, self.history[-1] if self.history else None)
+        self.history.append(ll)
+        return p_next, ll, stop
+
+    def done(self, p: _Params, p_next: _Params, ll: float, ll_prev: float | None) -> bool:
+        """The stopping rule on one EM step p -> p_next (ll at p, ll_prev at the previous
+        recorded iterate; None: log only)."""
+        q_old, sv_old = _basis(p[0])
+        q_new, sv_new = _basis(p_next[0])
+        dangle = _max_angle(q_old, q_new)
+        dscale = float(np.max(np.abs(sv_new - sv_old) / np.maximum(sv_new, 1e-300)))
+        s2_change = abs(p_next[2] - p[2]) / p[2]
+        log.debug(
+            "EM-PCA iter %d ll/obs %.8g sigma2 %.4g dangle %.2e dscale %.2e",
+            self.it,
+            ll,
+            p_next[2],
+            dangle,
+            dscale,
+        )
+        if ll_prev is None:
+            return False
+        rel = abs(ll - ll_prev) / max(abs(ll_prev), 1e-12)
+        tol = self.subspace_tol
+        settled = dangle < tol and max(dscale, s2_change) < 10 * tol
+        return rel < self.tol or settled
 
 
 def _run_em(
@@ -536,94 +645,65 @@ def _run_em(
     tol: float,
     subspace_tol: float,
     accelerate: bool,
-) -> tuple[F64, F64, float, list[float], int, bool]:
-    """The EM iterations, optionally accelerated by SQUAREM (see :func:`fit_pca_missing`).
-
-    Returns (W, mu, sigma2, log-likelihood history, E-steps run, converged).
-    """
-    history: list[float] = []
-    it = 0
-
-    def step(p: _Params) -> tuple[_Params, float]:
-        nonlocal it
-        it += 1
-        W1, mu1, s1, ll = _em_step(p[0], p[1], p[2], data)
-        return (W1, mu1, s1), ll
-
-    def done(p: _Params, p_next: _Params, ll: float, ll_prev: float | None) -> bool:
-        """The stopping rule on one EM step p -> p_next (ll at p, ll_prev at the previous
-        recorded iterate; None: log only)."""
-        q_old, sv_old = _basis(p[0])
-        q_new, sv_new = _basis(p_next[0])
-        dangle = _max_angle(q_old, q_new)
-        dscale = float(np.max(np.abs(sv_new - sv_old) / np.maximum(sv_new, 1e-300)))
-        s2_change = abs(p_next[2] - p[2]) / p[2]
-        log.debug(
-            "EM-PCA iter %d ll/obs %.8g sigma2 %.4g dangle %.2e dscale %.2e",
-            it,
-            ll,
-            p_next[2],
-            dangle,
-            dscale,
-        )
-        if ll_prev is None:
-            return False
-        rel = abs(ll - ll_prev) / max(abs(ll_prev), 1e-12)
-        settled = dangle < subspace_tol and max(dscale, s2_change) < 10 * subspace_tol
-        return rel < tol or settled
-
-    def last() -> float | None:
-        return history[-1] if history else None
-
+) -> _EMResult:
+    """The EM iterations, optionally accelerated by SQUAREM (see :func:`fit_pca_missing`):
+    two EM steps p0 -> p1 -> p2, then (with ``accelerate``) :func:`_squarem_step` from p0."""
+    loop = _EMLoop(data, tol, subspace_tol)
     p: _Params = (W, mu, sigma2)
     step_max = 1.0  # SQUAREM's adaptive bound on the step length (Varadhan & Roland 2008)
-    while it < max_iter:
+    while loop.it < max_iter:
         p0 = p
-        p1, ll0 = step(p0)
-        stop = done(p0, p1, ll0, last())
-        history.append(ll0)
-        p = p1
+        p, _, stop = loop.advance(p0)
         if stop:
-            return (*p, history, it, True)
-        if not accelerate or it >= max_iter:
+            return _EMResult(*p, loop.history, loop.it, True)
+        if not accelerate or loop.it >= max_iter:
             continue
-        p2, ll1 = step(p1)
-        stop = done(p1, p2, ll1, last())
-        history.append(ll1)
-        p = p2
+        p1 = p
+        p, ll1, stop = loop.advance(p1)
         if stop:
-            return (*p, history, it, True)
-        if it >= max_iter:
+            return _EMResult(*p, loop.history, loop.it, True)
+        if loop.it >= max_iter:
             continue
-        # SQUAREM S3: r = F(p0) - p0, v = F(F(p0)) - 2 F(p0) + p0,
-        # p' = p0 + 2 a r + a^2 v with a = |r| / |v| in [1, step_max]
-        r = [p1[k] - p0[k] for k in range(3)]
-        v = [p2[k] - p1[k] - r[k] for k in range(3)]
-        sr2 = sum(float(np.vdot(x, x)) for x in r)
-        sv2 = sum(float(np.vdot(x, x)) for x in v)
-        if not sv2 > 0.0:
-            continue
-        alpha = min(max(math.sqrt(sr2 / sv2), 1.0), step_max)
-        if alpha <= 1.0:  # p' = p2: nothing to extrapolate
-            if alpha == step_max:
-                step_max *= 4.0
-            continue
-        pp: _Params = (
-            p0[0] + 2.0 * alpha * r[0] + alpha**2 * v[0],
-            p0[1] + 2.0 * alpha * r[1] + alpha**2 * v[1],
-            max(p0[2] + 2.0 * alpha * r[2] + alpha**2 * v[2], data.sigma2_floor),
-        )
-        p3, llp = step(pp)  # the stabilising EM step; its E-step gives ll(p')
-        if math.isfinite(llp) and llp >= ll1:
-            # (logged, not a convergence test: ll1 -> llp is an extrapolation, not an EM step)
-            done(pp, p3, llp, None)
-            history.append(llp)
-            p = p3
-            if alpha == step_max:
-                step_max *= 4.0
-        elif alpha == step_max:  # rejected: continue from the EM iterate p2
-            step_max = max(1.0, step_max / 4.0)
-    return (*p, history, it, False)
+        p, step_max = _squarem_step(loop, p0, p1, p, ll1, step_max)
+    return _EMResult(*p, loop.history, loop.it, False)
+
+
+def _squarem_step(
+    loop: _EMLoop, p0: _Params, p1: _Params, p2: _Params, ll1: float, step_max: float
+) -> tuple[_Params, float]:
+    """SQUAREM S3 after the EM steps p0 -> p1 -> p2 (ll1 at p1): the next iterate and the
+    updated step bound.
+
+    ``r = p1 - p0``, ``v = p2 - 2 p1 + p0``, ``p' = p0 + 2 a r + a^2 v`` with
+    ``a = |r| / |v|`` clipped to [1, step_max] (sigma^2 floored), then one stabilising EM
+    step p' -> p3 whose E-step gives ll(p'). p3 is kept (and ll(p') recorded) if ll(p') is
+    finite and not below ll1, otherwise p2. The bound grows by 4 when a reaches it and the
+    step is kept (or a = 1 = bound), and shrinks by 4 (not below 1) when such a step is
+    rejected. No extrapolation (p2 kept) when v = 0 or a = 1.
+    """
+    r = [p1[k] - p0[k] for k in range(3)]
+    v = [p2[k] - p1[k] - r[k] for k in range(3)]
+    sr2 = sum(float(np.vdot(x, x)) for x in r)
+    sv2 = sum(float(np.vdot(x, x)) for x in v)
+    if not sv2 > 0.0:
+        return p2, step_max
+    alpha = min(max(math.sqrt(sr2 / sv2), 1.0), step_max)
+    if alpha <= 1.0:  # p' = p2: nothing to extrapolate
+        return p2, step_max * 4.0 if alpha == step_max else step_max
+    pp: _Params = (
+        p0[0] + 2.0 * alpha * r[0] + alpha**2 * v[0],
+        p0[1] + 2.0 * alpha * r[1] + alpha**2 * v[1],
+        max(p0[2] + 2.0 * alpha * r[2] + alpha**2 * v[2], loop.data.sigma2_floor),
+    )
+    p3, llp = loop.step(pp)  # the stabilising EM step; its E-step gives ll(p')
+    if math.isfinite(llp) and llp >= ll1:
+        # (logged, not a convergence test: ll1 -> llp is an extrapolation, not an EM step)
+        loop.done(pp, p3, llp, None)
+        loop.history.append(llp)
+        return p3, step_max * 4.0 if alpha == step_max else step_max
+    if alpha == step_max:  # rejected: continue from the EM iterate p2
+        step_max = max(1.0, step_max / 4.0)
+    return p2, step_max
 
 
 def plain_pca(X: ArrayLike, n_components: int) -> tuple[F64, F64, F64]:

@@ -27,6 +27,17 @@ An optional outlier component (weight ``outlier_weight``, a uniform density over
 area and all headings) keeps the model from vanishing away from the J poses, so that one
 wrong match (an unmodelled change in the scene) does not wipe out the belief.
 
+Evaluating a mixture (``PoseMixture.log_pdf_trig``): the kernels need the heading only
+through cos and sin (the wrap of the angle difference is implicit), so callers that already
+hold them (the filter: from the action model's rotation, or to reuse them for the estimate)
+skip two trigonometric passes. With ``phi = (x, y, cos t, sin t, x^2 + y^2, 1)`` the
+log-kernels of all K components are one small (K, 6) @ (6, M) product ``T = A phi``
+(``PoseMixture.component_log_pdf``), computed in blocks of columns, with every term shifted
+by the constant c0, the largest value any term can take, so the log-sum-exp needs no
+per-pose maximum: ``log p = c0 + log(sum_k exp(T_k) + u [inside the bounds])``, u the
+shifted outlier density. Where that sum underflows (a pose farther than ~13 kernel widths
+from every kernel and outside the bounds), the exact per-pose maximum is used instead.
+
 Everything is kept in log space. A :class:`PoseMixture` can be evaluated at any set of poses
 (``log_pdf``) and sampled (``sample``), which is what global localization and kidnap recovery
 use.
@@ -328,29 +339,14 @@ class PoseMixture:
     ) -> FloatArray:
         """:meth:`log_pdf` at poses given as x, y, cos(theta), sin(theta) (each (M,)).
 
-        The kernels need the heading only through cos and sin (the wrap of the angle
-        difference is implicit), so callers that already hold them (the filter: from the
-        action model's rotation, or to reuse them for the estimate) skip two trigonometric
-        passes. Computed in blocks of columns: T = A @ phi (one small matrix product, see
-        :meth:`component_log_pdf`) with every term shifted by the constant c0 of
-        :attr:`_coefficients`, so the log-sum-exp needs no per-pose maximum:
-        log p = c0 + log(sum_k exp(T_k) + u [inside the bounds]). Where that sum underflows
-        (a pose farther than ~13 kernel widths from every kernel and outside the bounds), the
-        exact per-pose maximum is used instead.
+        ``log p = c0 + log(sum_k exp(T_k) + u [inside the bounds]) + log_scale`` with
+        ``T = A @ phi`` in blocks of columns (see "Evaluating a mixture" in the module
+        docstring); poses where the shifted sum underflows get :meth:`_log_pdf_exact`.
         """
         _, c0, u, _ = self._coefficients
         m = px.shape[0]
         b = self.bounds
-        # every pose inside the bounds (the usual case): the outlier term is one constant
-        inside_all = False
-        if u > 0.0 and b is not None and m:
-            box = (float(px.min()), float(px.max()), float(py.min()), float(py.max()))
-            inside_all = (
-                box[0] >= b.x_min and box[1] <= b.x_max and box[2] >= b.y_min and box[3] <= b.y_max
-            )
-        a = self._active_rows(box) if inside_all and m >= _PRUNE_MIN_POSES else (
-            self._coefficients[0]
-        )
+        a, inside_all = self._rows_for(px, py)
         k = a.shape[0]
         out = np.empty(m)
         block = max(256, _MATMUL_BLOCK // max(k, 1))
@@ -383,13 +379,41 @@ class PoseMixture:
                 inside &= (phi[1] >= b.y_min) & (phi[1] <= b.y_max)
                 res += inside * u
         if m and float(out.min()) < _TINY_SUM:
-            low = out < _TINY_SUM
-            out[~low] = np.log(out[~low])
-            out[~low] += c0 + self.log_scale
-            out[low] = self._log_pdf_exact(px[low], py[low], cos_t[low], sin_t[low])
-            return out
+            return self._log_of_sums(out, px, py, cos_t, sin_t)
         np.log(out, out=out)
         out += c0 + self.log_scale
+        return out
+
+    def _rows_for(self, px: FloatArray, py: FloatArray) -> tuple[FloatArray, bool]:
+        """The rows of A (:attr:`_coefficients`) to sum at poses (px, py), and whether every
+        pose lies inside the bounds (then the outlier term is one constant). With an outlier
+        component and at least ``_PRUNE_MIN_POSES`` poses all inside, :meth:`_active_rows`;
+        otherwise every row."""
+        u = self._coefficients[2]
+        m = px.shape[0]
+        b = self.bounds
+        inside_all = False
+        if u > 0.0 and b is not None and m:
+            box = (float(px.min()), float(px.max()), float(py.min()), float(py.max()))
+            inside_all = (
+                box[0] >= b.x_min and box[1] <= b.x_max and box[2] >= b.y_min and box[3] <= b.y_max
+            )
+        a = self._active_rows(box) if inside_all and m >= _PRUNE_MIN_POSES else (
+            self._coefficients[0]
+        )
+        return a, inside_all
+
+    def _log_of_sums(
+        self, out: FloatArray, px: FloatArray, py: FloatArray, cos_t: FloatArray, sin_t: FloatArray
+    ) -> FloatArray:
+        """``out`` (the shifted sums of :meth:`log_pdf_trig`, in place) turned into log
+        densities: ``log(out) + c0 + log_scale`` where the sum is at least ``_TINY_SUM``, and
+        :meth:`_log_pdf_exact` at the other poses."""
+        c0 = self._coefficients[1]
+        low = out < _TINY_SUM
+        out[~low] = np.log(out[~low])
+        out[~low] += c0 + self.log_scale
+        out[low] = self._log_pdf_exact(px[low], py[low], cos_t[low], sin_t[low])
         return out
 
     def _log_pdf_exact(

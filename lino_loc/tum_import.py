@@ -110,17 +110,16 @@ def planar_pose(position: np.ndarray, rotation: Rotation) -> np.ndarray:
 
 def import_tum(seq_dir: Path | str, out_dir: Path | str, camera: str = "freiburg1",
                overwrite: bool = False, name: str | None = None) -> ImportReport:
-    """Convert the TUM sequence ``seq_dir`` into a dataset folder at ``out_dir``."""
+    """Convert the TUM sequence ``seq_dir`` into a dataset folder at ``out_dir``.
+
+    LinoLocError if ``seq_dir`` is not a folder, ``camera`` is not one of
+    ``TUM_INTRINSICS``, ``out_dir`` is a non-empty folder without ``overwrite`` (with it, the
+    folder is removed first), no frame is listed or none lies within the ground truth, or a
+    listed image is missing or unreadable.
+    """
     seq = Path(seq_dir)
     out = Path(out_dir)
-    if not seq.is_dir():
-        raise LinoLocError(f"{seq}: not a folder")
-    if camera not in TUM_INTRINSICS:
-        raise LinoLocError(f"camera {camera!r}: expected one of {', '.join(TUM_INTRINSICS)}")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise LinoLocError(f"{out}: folder exists and is not empty (use --overwrite)")
-        shutil.rmtree(out)
+    _check_paths(seq, out, camera, overwrite)
     stamps, positions, rotations = read_groundtruth(seq / "groundtruth.txt")
     slerp = Slerp(stamps, rotations)
     pairs = read_pairs(seq)
@@ -132,30 +131,17 @@ def import_tum(seq_dir: Path | str, out_dir: Path | str, camera: str = "freiburg
     skipped_gt = skipped_depth = 0
     width = height = 0
     for t, rgb_rel, depth_rel in pairs:
-        k = int(np.searchsorted(stamps, t))
-        if k == 0 or k >= len(stamps) or stamps[k] - stamps[k - 1] > MAX_GROUNDTRUTH_GAP_S:
+        pose = _groundtruth_pose(t, stamps, positions, slerp)
+        if pose is None:
             skipped_gt += 1
             continue
-        a = (t - stamps[k - 1]) / (stamps[k] - stamps[k - 1])
-        position = (1 - a) * positions[k - 1] + a * positions[k]
-        pose = planar_pose(position, slerp([t])[0])
         src = seq / rgb_rel
         if not src.is_file():
             raise LinoLocError(f"{src}: image listed but missing")
         if not width:
-            first = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
-            if first is None:
-                raise LinoLocError(f"{src}: not a readable image")
-            height, width = first.shape[:2]
-        image_rel = f"images/{Path(rgb_rel).name}"
-        shutil.copyfile(src, out / image_rel)
-        row = {"image": image_rel, "x": repr(float(pose[0])), "y": repr(float(pose[1])), "theta": repr(float(pose[2])),
-               "depth": "", "condition": "tum", "stamp": f"{t:.6f}"}
-        if depth_rel is not None and (seq / depth_rel).is_file():
-            (out / "depth").mkdir(exist_ok=True)
-            row["depth"] = f"depth/{Path(depth_rel).name}"
-            shutil.copyfile(seq / depth_rel, out / row["depth"])
-        else:
+            height, width = _image_size(src)
+        row = _copy_frame(seq, out, t, pose, rgb_rel, depth_rel)
+        if not row["depth"]:
             skipped_depth += 1
         rows.append(row)
     if not rows:
@@ -169,9 +155,63 @@ def import_tum(seq_dir: Path | str, out_dir: Path | str, camera: str = "freiburg
         conditions=["tum"],
         source=f"TUM RGB-D sequence {seq.name} ({camera}), imported by lino-loc",
     )
+    _write_dataset(out, rows, meta)
+    return ImportReport(frames=len(rows), skipped_no_groundtruth=skipped_gt, skipped_no_depth=skipped_depth)
+
+
+def _check_paths(seq: Path, out: Path, camera: str, overwrite: bool) -> None:
+    """The checks of :func:`import_tum` before anything is read; removes a non-empty ``out``
+    when ``overwrite``."""
+    if not seq.is_dir():
+        raise LinoLocError(f"{seq}: not a folder")
+    if camera not in TUM_INTRINSICS:
+        raise LinoLocError(f"camera {camera!r}: expected one of {', '.join(TUM_INTRINSICS)}")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise LinoLocError(f"{out}: folder exists and is not empty (use --overwrite)")
+        shutil.rmtree(out)
+
+
+def _groundtruth_pose(t: float, stamps: np.ndarray, positions: np.ndarray, slerp: Slerp) -> np.ndarray | None:
+    """The planar pose at stamp ``t``, interpolated between the ground-truth poses around it
+    (linear in position, slerp in rotation); None outside the stamps' span or in a gap longer
+    than ``MAX_GROUNDTRUTH_GAP_S``."""
+    k = int(np.searchsorted(stamps, t))
+    if k == 0 or k >= len(stamps) or stamps[k] - stamps[k - 1] > MAX_GROUNDTRUTH_GAP_S:
+        return None
+    a = (t - stamps[k - 1]) / (stamps[k] - stamps[k - 1])
+    position = (1 - a) * positions[k - 1] + a * positions[k]
+    return planar_pose(position, slerp([t])[0])
+
+
+def _image_size(src: Path) -> tuple[int, int]:
+    """(height, width) of the image ``src``; LinoLocError if it cannot be read."""
+    first = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+    if first is None:
+        raise LinoLocError(f"{src}: not a readable image")
+    height, width = first.shape[:2]
+    return height, width
+
+
+def _copy_frame(seq: Path, out: Path, t: float, pose: np.ndarray, rgb_rel: str,
+                depth_rel: str | None) -> dict[str, str]:
+    """Copy one frame's colour image (and its depth PNG when listed and present) from ``seq``
+    into ``out``; its row of poses.csv (``depth`` empty without depth)."""
+    image_rel = f"images/{Path(rgb_rel).name}"
+    shutil.copyfile(seq / rgb_rel, out / image_rel)
+    row = {"image": image_rel, "x": repr(float(pose[0])), "y": repr(float(pose[1])), "theta": repr(float(pose[2])),
+           "depth": "", "condition": "tum", "stamp": f"{t:.6f}"}
+    if depth_rel is not None and (seq / depth_rel).is_file():
+        (out / "depth").mkdir(exist_ok=True)
+        row["depth"] = f"depth/{Path(depth_rel).name}"
+        shutil.copyfile(seq / depth_rel, out / row["depth"])
+    return row
+
+
+def _write_dataset(out: Path, rows: list[dict[str, str]], meta: DatasetMeta) -> None:
+    """Write ``poses.csv`` (the rows) and ``dataset.json`` (the meta) in ``out``."""
     with open(out / "poses.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["image", "x", "y", "theta", "depth", "condition", "stamp"])
         writer.writeheader()
         writer.writerows(rows)
     (out / "dataset.json").write_text(meta.model_dump_json(indent=2) + "\n")
-    return ImportReport(frames=len(rows), skipped_no_groundtruth=skipped_gt, skipped_no_depth=skipped_depth)
