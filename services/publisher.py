@@ -19,25 +19,42 @@ takes microseconds, so the lock is never held for long.
 :class:`RateLimiter` throttles the ``particles`` topic (``publish.particles_max_rate_hz``)
 and paces ``status`` (``publish.status_period_s``).
 
+:class:`PosePublisher` is what the daemon's loop calls after each filter update: it numbers
+the update (``seq``), publishes its :class:`services.messages.PoseMessage` on ``pose``, keeps
+it (and the estimate) as the latest for the control thread, and publishes the particle set
+on ``particles`` when a subscriber wants it and the rate limit allows: a uniform random
+subset of ``particles_max_count`` particles without replacement when there are more (drawn
+from the publisher's own seeded generator, never the filter's), with the weights of the
+subset normalised to sum to 1 (uniform when they sum to 0).
+
 Usage::
 
     pub = Publisher(zmq.Context.instance(), "tcp://127.0.0.1:5556", sndhwm=100)
     pub.publish("pose", PoseMessage(...))
     limiter = RateLimiter(2.0)
     if limiter.ready(time.monotonic()): pub.publish("particles", msg)
+    poses = PosePublisher(pub, cfg.publish, localizer.particles)
+    msg = poses.publish(estimate, stamp=frame.stamp, pan=pan)   # None if invalid
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import zmq
 from pydantic import BaseModel
 
-from services.messages import encode
+from lino_loc.pose_estimate import Estimate
+from services.messages import ParticlesMessage, PoseMessage, encode
+
+if TYPE_CHECKING:
+    from services.config import PublishConfig
 
 log = logging.getLogger("lino_loc.service.publisher")
 
@@ -149,3 +166,76 @@ class Publisher:
             if not self._closed:
                 self._closed = True
                 self._sock.close(linger=0)
+
+
+#: Seed of the generator that picks the published subset of particles.
+PARTICLE_SUBSET_SEED = 0
+
+ParticleSource = Callable[[], tuple[np.ndarray, np.ndarray]]
+
+
+class PosePublisher:
+    """Poses and particles of each update on a :class:`Publisher` (module docstring).
+
+    ``particles`` returns copies of the filter's particles (M x 3) and linear weights (M,)
+    (``Localizer.particles``). :meth:`latest` may be called from any thread."""
+
+    def __init__(self, publisher: Publisher, cfg: PublishConfig, particles: ParticleSource) -> None:
+        self.publisher = publisher
+        self.cfg = cfg
+        self.particles = particles
+        self.seq = 0
+        self.published = 0
+        self._limiter = RateLimiter(cfg.particles_max_rate_hz)
+        self._rng = np.random.default_rng(PARTICLE_SUBSET_SEED)
+        self._lock = threading.Lock()
+        self._last_pose: PoseMessage | None = None
+        self._last_estimate: Estimate | None = None
+
+    def latest(self) -> tuple[PoseMessage | None, Estimate | None]:
+        """The last published pose message and the estimate it came from."""
+        with self._lock:
+            return self._last_pose, self._last_estimate
+
+    def publish(
+        self, est: Estimate, *, stamp: float, pan: float | None, dead_reckoning: bool = False
+    ) -> PoseMessage | None:
+        """Publish the pose of ``est`` (and maybe the particles); None when the estimate holds
+        a non-finite value (logged, nothing published, ``seq`` still counts the update)."""
+        self.seq += 1
+        try:
+            msg = PoseMessage.from_estimate(
+                est, stamp=stamp, seq=self.seq, pan=pan, dead_reckoning=dead_reckoning
+            )
+        except ValueError as exc:
+            log.warning("pose not published (invalid estimate): %s", exc)
+            return None
+        self.publisher.publish("pose", msg)
+        with self._lock:
+            self._last_pose, self._last_estimate = msg, est
+        self.published += 1
+        return msg
+
+    def publish_particles(self, stamp: float) -> bool:
+        """Publish the particle set of update ``seq`` if wanted and due; True if sent."""
+        if not self._limiter.ready(time.monotonic()) or not self.publisher.wanted("particles"):
+            return False
+        return self.publisher.publish("particles", self.particles_message(stamp))
+
+    def particles_message(self, stamp: float) -> ParticlesMessage:
+        """The (maybe subsampled) particle set with normalised weights."""
+        p, w = self.particles()
+        n = p.shape[0]
+        cap = self.cfg.particles_max_count
+        if n > cap:
+            idx = self._rng.choice(n, size=cap, replace=False)
+            p, w = p[idx], w[idx]
+        total = float(w.sum())
+        w = w / total if total > 0 else np.full(len(w), 1.0 / max(len(w), 1))
+        return ParticlesMessage(
+            stamp=stamp,
+            seq=self.seq,
+            poses=[tuple(float(v) for v in row) for row in p],
+            weights=[float(v) for v in w],
+            n_total=n,
+        )
