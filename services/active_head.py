@@ -18,7 +18,7 @@ back to pan 0 (looking ahead) unless the head is paused.
 
 Usage::
 
-    active = ActiveHead(cfg, localizer, heads, head_worker)
+    active = ActiveHead(cfg.active_vision, (head.pan_min, head.pan_max), localizer, heads, worker)
     if active.frame_at_rest(stamp, moving, heads.last_motion): ...  # use the image
     active.step(estimate, frame_stamp)
 """
@@ -26,45 +26,98 @@ Usage::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from typing import Any
 
-from lino_loc.active_vision import ActionEvaluator, ActivePolicy, HeadSettle
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from lino_loc.active_vision import ActionEvaluator, ActivePolicy, ActiveVisionConfig, HeadSettle
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
 from lino_loc.pose_estimate import Estimate
-from services.config import ServiceConfig
 from services.messages import ActiveVisionInfo
 
 log = logging.getLogger("lino_loc.service")
 
+_METHOD = ActiveVisionConfig()
 
-def make_active_policy(cfg: ServiceConfig, localizer: Localizer) -> ActivePolicy:
-    """The active-vision policy of the service: the ``[active_vision]`` settings, the
-    localizer's intensity sensor model, and the head's limits ``devices.head.pan_min/pan_max``
-    (the same limits the head driver clamps its goals to).
+#: The method's settings the service does not expose: the policy uses the defaults of
+#: lino_loc.active_vision.ActiveVisionConfig (22 candidate pans and 150 particles as in the
+#: paper; the other figures are measured in docs/results.md, "Active vision").
+METHOD_SETTINGS = (
+    "n_actions", "max_particles", "min_entropy_gain", "trigger_entropy", "trigger_doubt",
+    "min_log_likelihood", "move_cost", "pan_tolerance", "predicted_neighbours",
+    "entropy_cell_xy", "entropy_cell_theta",
+)
+
+
+class ActiveVisionSettings(BaseModel):
+    """The service's ``[active_vision]`` section: what a robot integrator sets (the head's
+    range, mechanics and home). :meth:`method_config` completes it with the method's
+    settings (:data:`METHOD_SETTINGS`, their defaults)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="choose the camera's pan angle (paper, section 4)")
+    pan_min: float = Field(_METHOD.pan_min, ge=-math.pi, le=math.pi, description="radians; within devices.head")
+    pan_max: float = Field(_METHOD.pan_max, ge=-math.pi, le=math.pi, description="radians; within devices.head")
+    settle_s: float = Field(
+        _METHOD.settle_s, ge=0.0,
+        description="after the head stops, frames are used for prediction only this long (smear, pan uncertain)",
+    )
+    min_interval_s: float = Field(_METHOD.min_interval_s, ge=0.0, description="seconds between head movements")
+    home_pan: float | None = Field(
+        _METHOD.home_pan,
+        description="radians; once localized the head returns here (0: looking ahead); unset: it stays",
+    )
+
+    @model_validator(mode="after")
+    def _range(self) -> ActiveVisionSettings:
+        if not self.pan_min < self.pan_max:
+            raise ValueError(f"pan_min ({self.pan_min}) must be < pan_max ({self.pan_max})")
+        return self
+
+    def method_config(self, **update: Any) -> ActiveVisionConfig:
+        """The method's configuration: these settings over the method's defaults."""
+        return ActiveVisionConfig(**{**self.model_dump(), **update})
+
+
+def make_active_policy(
+    settings: ActiveVisionSettings, localizer: Localizer, head_limits: tuple[float, float]
+) -> ActivePolicy:
+    """The active-vision policy of the service: the ``[active_vision]`` settings over the
+    method's defaults, the localizer's intensity sensor model, and the head's limits
+    (``devices.head.pan_min/pan_max``, the limits the head driver clamps its goals to).
 
     The policy always decides (``enabled`` forced on): the daemon switches active vision on
     and off itself (:class:`ActiveHead`, the control socket's ``set_active_vision``). Raises
     ValueError when the pan range does not overlap the head's limits."""
-    av = cfg.active_vision.model_copy(update={"enabled": True})
-    head = cfg.devices.head
+    av = settings.method_config(enabled=True)
     model = localizer.sensor_model("intensity")
-    return ActivePolicy(ActionEvaluator(model, av), av, head_limits=(head.pan_min, head.pan_max))
+    return ActivePolicy(ActionEvaluator(model, av), av, head_limits=head_limits)
 
 
 class ActiveHead:
     """Switches, policy and head commands of the daemon's active vision (module docstring)."""
 
-    def __init__(self, cfg: ServiceConfig, localizer: Localizer, heads: Any, head: Any) -> None:
-        self.cfg = cfg
+    def __init__(
+        self,
+        settings: ActiveVisionSettings,
+        head_limits: tuple[float, float],
+        localizer: Localizer,
+        heads: Any,
+        head: Any,
+    ) -> None:
+        self.settings = settings
+        self.head_limits = head_limits
         self.localizer = localizer
         self.heads = heads
         self.head = head
-        self.settle = HeadSettle(cfg.active_vision.settle_s)
+        self.settle = HeadSettle(settings.settle_s)
         self._lock = threading.Lock()
-        self.enabled = bool(cfg.active_vision.enabled)
+        self.enabled = bool(settings.enabled)
         self.paused = False
         self.head_paused = False
         self.policy: ActivePolicy | None = None
@@ -84,7 +137,7 @@ class ActiveHead:
         if self.policy is not None:
             return
         try:
-            self.policy = make_active_policy(self.cfg, self.localizer)
+            self.policy = make_active_policy(self.settings, self.localizer, self.head_limits)
         except (ValueError, LinoLocError) as exc:
             log.warning("%s: %s", what, exc)
 

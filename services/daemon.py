@@ -32,7 +32,7 @@ left image (and the disparity map when the map has a disparity channel) go into 
 newer than the last one used is skipped. A frame taken while the head turns or settles
 (:class:`lino_loc.active_vision.HeadSettle`) is used for prediction only: its pan is
 uncertain and the image smeared on the real camera. Between frames the loop runs queued
-control commands, and on time: ``status`` (every ``publish.status_period_s``), ``WATCHDOG=1``
+control commands, and on time: ``status`` (every :data:`services.status.STATUS_PERIOD_S`), ``WATCHDOG=1``
 (at half of ``$WATCHDOG_USEC``; from this loop, so a hung loop stops pinging), saving the
 pose (every ``persistence.save_period_s``). Without frames for a while (:class:`CameraWatch`:
 the camera failed) it predicts from odometry alone at the camera's rate (``dead_reckoning``:
@@ -78,7 +78,7 @@ from services.device_threads import (
 )
 from services.persistence import SavedState, StateSaver, load_state
 from services.publisher import PosePublisher, Publisher, RateLimiter
-from services.status import StatusReporter, StatusSources, map_info, status_line
+from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
 from services.truth_relay import TruthRelay
 
 log = logging.getLogger("lino_loc.service")
@@ -205,7 +205,10 @@ class Daemon:
             "odometry": OdometryWorker(factories["odometry"], self.odometry),
             "head": HeadWorker(factories["head"], self.heads),
         }
-        self.active = ActiveHead(cfg, self.localizer, self.heads, self.workers["head"])
+        head = cfg.devices.head
+        self.active = ActiveHead(
+            cfg.active_vision, (head.pan_min, head.pan_max), self.localizer, self.heads, self.workers["head"]
+        )
         self.saver = StateSaver(cfg.persistence.state_file)
         self.publisher: Publisher | None = None
         self.poses: PosePublisher | None = None
@@ -299,7 +302,7 @@ class Daemon:
         """The loop (call :meth:`start` first); returns 0 after a clean shutdown."""
         wd_period = sd_notify.watchdog_period()
         next_wd = time.monotonic()
-        status_every = RateLimiter.every(self.cfg.publish.status_period_s)
+        status_every = RateLimiter.every(STATUS_PERIOD_S)
         save_every = RateLimiter.every(self.cfg.persistence.save_period_s)
         save_every.ready(time.monotonic())  # first save one period from now
         try:

@@ -33,13 +33,29 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from lino_loc.atomic_file import atomic_write
 from lino_loc.pose_estimate import Estimate
 from services.messages import Covariance, Pose2D
 
 log = logging.getLogger("lino_loc.service.persistence")
+
+class PersistenceConfig(BaseModel):
+    """The service's ``[persistence]`` section: the last pose, saved atomically and used as the
+    initial belief at the next start."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    state_file: Path = Field(Path("/var/lib/lino-loc/state.json"))
+    save_period_s: float = Field(5.0, gt=0.0, description="seconds between saves")
+    restore: bool = Field(True, description="start from the saved pose (as AMCL does)")
+
+    @field_validator("state_file")
+    @classmethod
+    def _expand(cls, v: Path) -> Path:
+        return v.expanduser()
+
 
 STATE_FORMAT = "lino-loc-state"
 STATE_VERSION = 1

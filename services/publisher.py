@@ -1,12 +1,12 @@
 """The daemon's ZeroMQ pose stream: a publisher that never blocks, and rate limits.
 
-:class:`Publisher` binds an XPUB socket (design.md 4.4: every message is two frames
+:class:`Publisher` binds an XPUB socket (every message is two frames
 ``[topic, json]``). It behaves as a PUB socket for the subscribers; XPUB is used because it
 also delivers the subscriptions, so the daemon knows how many clients are listening and
 to which topics (:attr:`Publisher.subscriptions`), and can skip serializing topics nobody
 wants (the particle set is the largest message).
 
-Never blocking (issue 5): each subscriber has a send queue of ``sndhwm`` messages
+Never blocking: each subscriber has a send queue of ``sndhwm`` messages
 (``ZMQ_SNDHWM``); when a subscriber does not read, ZeroMQ drops further messages *for that
 subscriber only* once its queue is full, and the other subscribers and the loop are not
 affected. Every send uses ``zmq.NOBLOCK``; a send that fails anyway (``EAGAIN`` or another
@@ -17,7 +17,7 @@ republishes the simulator's truth): sends are serialized by a lock. A send with 
 takes microseconds, so the lock is never held for long.
 
 :class:`RateLimiter` throttles the ``particles`` topic (``publish.particles_max_rate_hz``)
-and paces ``status`` (``publish.status_period_s``).
+and paces ``status`` (:data:`services.status.STATUS_PERIOD_S`).
 
 :class:`PosePublisher` is what the daemon's loop calls after each filter update: it numbers
 the update (``seq``), publishes its :class:`services.messages.PoseMessage` on ``pose``, keeps
@@ -44,19 +44,26 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import zmq
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.pose_estimate import Estimate
 from services.messages import ParticlesMessage, PoseMessage, encode
 
-if TYPE_CHECKING:
-    from services.config import PublishConfig
-
 log = logging.getLogger("lino_loc.service.publisher")
+
+
+class PublishConfig(BaseModel):
+    """The service's ``[publish]`` section: what is published besides the poses."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    particles_max_rate_hz: float = Field(2.0, ge=0.0, description="0 = never publish particles")
+    particles_max_count: int = Field(500, ge=1, description="subsample the particle set to this many")
+    truth: bool = Field(True, description="republish the simulator's true pose (simulation only)")
 
 
 class RateLimiter:

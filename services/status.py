@@ -2,7 +2,7 @@
 
 :class:`StatusReporter` keeps what the loop reports about itself and turns it into a
 :class:`services.messages.StatusMessage` (topic ``status`` every
-``publish.status_period_s``, and the ``status`` reply of the control socket):
+:data:`STATUS_PERIOD_S`, and the ``status`` reply of the control socket):
 
 - rates over the last status period: ``pose_rate_hz = poses / dt``, ``frame_rate_hz =
   frames / dt`` (frames the loop took from the mailbox), ``dt`` the period's length (s);
@@ -51,6 +51,9 @@ from services.messages import (
 log = logging.getLogger("lino_loc.service")
 
 DEVICES = ("camera", "head", "odometry")
+
+#: Seconds between two status messages (topic ``status``: once a second, docs/zeromq.md).
+STATUS_PERIOD_S = 1.0
 
 #: Latencies kept between two status messages (the oldest are dropped beyond this).
 LATENCY_WINDOW = 10000

@@ -29,7 +29,7 @@ class FakePolicy:
 def _active(enabled: bool = True, reading: HeadReading | None = None) -> tuple[ActiveHead, FakeWorker]:
     cfg = ServiceConfig(active_vision={"enabled": enabled, "settle_s": 0.2})
     head = FakeWorker()
-    a = ActiveHead(cfg, FakeLocalizer(), FakeHeads(reading or HeadReading()), head)  # type: ignore[arg-type]
+    a = ActiveHead(cfg.active_vision, (-2.6, 2.6), FakeLocalizer(), FakeHeads(reading or HeadReading()), head)  # type: ignore[arg-type]
     return a, head
 
 

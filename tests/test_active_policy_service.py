@@ -19,6 +19,10 @@ from services.active_head import make_active_policy
 from services.config import ServiceConfig
 
 
+def _head_limits(cfg: ServiceConfig) -> tuple[float, float]:
+    return (cfg.devices.head.pan_min, cfg.devices.head.pan_max)
+
+
 def _uniform_belief(n: int = 200) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(0)
     p = np.column_stack([rng.uniform(0, 6, n), rng.uniform(0, 3, n), rng.uniform(-math.pi, math.pi, n)])
@@ -28,7 +32,7 @@ def _uniform_belief(n: int = 200) -> tuple[np.ndarray, np.ndarray]:
 def test_policy_decides_even_when_the_file_disables_active_vision() -> None:
     m, _, _ = _world()
     cfg = ServiceConfig(active_vision={"enabled": False, "pan_min": -1.0, "pan_max": 1.0})
-    policy = make_active_policy(cfg, Localizer(m, _config()))
+    policy = make_active_policy(cfg.active_vision, Localizer(m, _config()), _head_limits(cfg))
     p, lw = _uniform_belief()
     d = policy.decide(p, lw, state="global", log_likelihood=-5.0, pan=0.0, moving=False, now=100.0)
     assert d.reason != "disabled"
@@ -41,7 +45,7 @@ def test_policy_keeps_inside_the_head_limits() -> None:
         devices={"head": {"pan_min": -0.5, "pan_max": 0.25}},
         active_vision={"pan_min": -0.5, "pan_max": 0.25},
     )
-    policy = make_active_policy(cfg, Localizer(m, _config()))
+    policy = make_active_policy(cfg.active_vision, Localizer(m, _config()), _head_limits(cfg))
     assert (policy.pan_lo, policy.pan_hi) == (-0.5, 0.25)
     p, lw = _uniform_belief()
     d = policy.decide(p, lw, state="global", log_likelihood=-5.0, pan=0.0, moving=False, now=100.0)

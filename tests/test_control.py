@@ -144,7 +144,7 @@ def _handlers(tmp_path, est=None):  # noqa: ANN001, ANN202
 
     loc = FakeLocalizer()
     cfg = ServiceConfig()
-    active = ActiveHead(cfg, loc, FakeHeads(HeadReading()), FakeWorker())  # type: ignore[arg-type]
+    active = ActiveHead(cfg.active_vision, (-2.6, 2.6), loc, FakeHeads(HeadReading()), FakeWorker())  # type: ignore[arg-type]
     q = CommandQueue()
     h = ControlHandlers(q, loc, Poses(), Status(), active, StateSaver(tmp_path / "state.json"), "sum")  # type: ignore[arg-type]
     return h, q, loc
