@@ -569,7 +569,7 @@ class ActivePolicy:
     """When to look, where, and when to stop (module docstring). Call :meth:`decide` after
     each filter update with the head's present state; send ``command`` when it is not None.
 
-    ``head_limits`` = (pan_min, pan_max) of the head (e.g. ``head.limits.pan_min/pan_max``);
+    ``head_limits`` = (pan_min, pan_max) of the head (the service: ``devices.head.pan_min/pan_max``);
     commands never leave the intersection of those and the configured range."""
 
     def __init__(
