@@ -506,6 +506,55 @@ Reason = Literal[
 ]
 
 
+@dataclass
+class HeadSettle:
+    """The head-settle rule: does a frame (or a reading) taken at time ``t`` show the head at rest?
+
+    A frame taken while the head turns, or less than ``settle_s`` after its last motion, is
+    smeared on the real camera and its pan uncertain: the daemon gives it to the filter for
+    prediction only, and the policy waits for a frame taken after the head settled. With
+    ``last_motion`` the latest time the head was seen moving::
+
+        at_rest(t) = not moving(t) and not (0 <= t - last_motion < settle_s)
+
+    ``last_motion = None``: the head has not moved, at rest unless ``moving``. The daemon passes
+    the frame's interpolated moving flag and the last moving sample of the head's history
+    (``services.device_threads.HeadHistory``); the policy, which sees only the present
+    readings, tracks ``last_motion`` with :meth:`observe` and counts any time before it as
+    moving (it does not know what the head did then).
+    """
+
+    settle_s: float
+    last_motion: float | None = None
+    _moving: bool = False
+
+    def at_rest(self, t: float, moving: bool, last_motion: float | None) -> bool:
+        """The rule above for a time ``t`` (s), the head's moving flag at ``t`` and its last
+        motion (s, or None)."""
+        if moving:
+            return False
+        return last_motion is None or not 0.0 <= t - last_motion < self.settle_s
+
+    def observe(self, moving: bool, now: float) -> None:
+        """Track :attr:`last_motion` from readings given in time order: while moving it is
+        unknown (None); the first reading at rest after moving ones sets it to ``now``; a head
+        first seen at rest stopped long ago (``-inf``)."""
+        if moving:
+            self._moving = True
+            self.last_motion = None
+        elif self._moving:
+            self._moving = False
+            self.last_motion = now
+        elif self.last_motion is None:
+            self.last_motion = -math.inf
+
+    def observed_at_rest(self, t: float) -> bool:
+        """:meth:`at_rest` from the tracked readings: a time before the tracked last motion
+        counts as moving."""
+        lm = self.last_motion
+        return self.at_rest(t, lm is not None and t < lm, lm)
+
+
 @dataclass(frozen=True)
 class Decision:
     """What the policy decided: ``command`` is the pan angle to send (None: do nothing)."""
@@ -520,7 +569,7 @@ class ActivePolicy:
     """When to look, where, and when to stop (module docstring). Call :meth:`decide` after
     each filter update with the head's present state; send ``command`` when it is not None.
 
-    ``head_limits`` = (pan_min, pan_max) of the head (e.g. ``head.limits.pan_min/pan_max``);
+    ``head_limits`` = (pan_min, pan_max) of the head (the service: ``devices.head.pan_min/pan_max``);
     commands never leave the intersection of those and the configured range."""
 
     def __init__(
@@ -542,8 +591,7 @@ class ActivePolicy:
         self.pan_lo, self.pan_hi = lo, hi
         self.last_command_time = -math.inf
         self.last_command: float | None = None
-        self.settled_at: float | None = None
-        self._was_moving = False
+        self.settle = HeadSettle(self.config.settle_s)
 
     def clamp(self, pan: float) -> float:
         """A pan angle inside the allowed range (NaN becomes the range's centre)."""
@@ -588,27 +636,21 @@ class ActivePolicy:
 
         ``pan``/``moving``: the head's present pan angle and whether it is moving; ``now``: the
         time of that reading (s); ``frame_stamp``: time of the last frame the filter used (the
-        policy waits for a frame taken ``settle_s`` after the head stopped); ``state``/
+        policy waits for a frame taken ``settle_s`` after the head stopped, :class:`HeadSettle`); ``state``/
         ``log_likelihood``: the filter's state and the last observation's predictive
         log-likelihood; ``doubt``: the estimate's evidence that the views no longer fit the
         belief (``Estimate.doubt``, 1 = lost)."""
         c = self.config
         if not c.enabled:
             return Decision(None, "disabled")
+        self.settle.observe(moving, now)
         if moving:
-            self._was_moving = True
-            self.settled_at = None
             return Decision(None, "head moving")
-        if self._was_moving:  # it just stopped
-            self._was_moving = False
-            self.settled_at = now
-        elif self.settled_at is None:  # first reading, head at rest: settled long ago
-            self.settled_at = -math.inf
-        if now - self.settled_at < c.settle_s:
+        if not self.settle.observed_at_rest(now):
             return Decision(None, "settling")
         if now - self.last_command_time < c.min_interval_s:
             return Decision(None, "interval")
-        if frame_stamp is not None and frame_stamp < self.settled_at + c.settle_s:
+        if frame_stamp is not None and not self.settle.observed_at_rest(frame_stamp):
             return Decision(None, "no new frame")
         p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
         lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)

@@ -8,16 +8,19 @@
     [devices.odometry] kind = "serial" | "sim"; drivers.serial_odometry.OdometryConfig fields
     [map]              path of the appearance map; [map.build] to build it once (simulation)
     [localizer]        lino_loc.localizer.LocalizerConfig: motion, sensor, filter, fusion
-    [active_vision]    entropy-driven head control (22 pan angles by default)
+    [active_vision]    services.active_head.ActiveVisionSettings: the head's range, settle
+                       time, interval, home (the method's settings are its defaults)
     [endpoints]        ZeroMQ PUB and REP addresses, high-water mark
-    [publish]          particle throttling, status period, truth (simulation)
-    [persistence]      state file (last pose), save period
+    [publish]          services.publisher.PublishConfig: particle throttling, truth (simulation)
+    [persistence]      services.persistence.PersistenceConfig: state file (last pose), save period
     [logging]          level
 
 Sources, highest priority first: environment variables ``LINO_LOC__SECTION__FIELD``
 (nested with ``__``, e.g. ``LINO_LOC__DEVICES__HEAD__PORT=/dev/ttyUSB1``; lists and tables as
 JSON), then the TOML file, then the defaults below (the real robot's). Unknown keys are
 errors everywhere (also misspelt ``LINO_LOC__...`` variables), so typos never pass silently.
+A key that was a setting once (:data:`RETIRED_KEYS`) fails with one line naming its new key
+or saying that it is no longer a setting.
 
 Relative paths are relative to the working directory; ``~`` is expanded.
 
@@ -45,10 +48,12 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from drivers.dynamixel_head import HeadConfig
 from drivers.oakd_config import OakdConfig
 from drivers.serial_odometry import OdometryConfig
-from lino_loc.active_vision import ActiveVisionConfig  # the [active_vision] section
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import LocalizerConfig
 from lino_loc.preprocessing import Preprocess
+from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
+from services.persistence import PersistenceConfig
+from services.publisher import PublishConfig
 
 ENV_PREFIX = "LINO_LOC__"
 ENV_DELIMITER = "__"
@@ -192,7 +197,7 @@ class MapConfig(_Section):
 
 
 class EndpointsConfig(_Section):
-    """ZeroMQ addresses (design.md section 4.4). Bind to 0.0.0.0 to serve other machines."""
+    """ZeroMQ addresses (docs/zeromq.md). Bind to 0.0.0.0 to serve other machines."""
 
     pub: str = Field("tcp://127.0.0.1:5556", description="PUB socket: pose, status, particles, truth")
     rep: str = Field("tcp://127.0.0.1:5557", description="REP socket: control requests")
@@ -212,26 +217,6 @@ class EndpointsConfig(_Section):
         if self.pub == self.rep:
             raise ValueError(f"pub and rep must differ (both {self.pub})")
         return self
-
-
-class PublishConfig(_Section):
-    particles_max_rate_hz: float = Field(2.0, ge=0.0, description="0 = never publish particles")
-    particles_max_count: int = Field(500, ge=1, description="subsample the particle set to this many")
-    status_period_s: float = Field(1.0, gt=0.0, description="seconds between status messages")
-    truth: bool = Field(True, description="republish the simulator's true pose (simulation only)")
-
-
-class PersistenceConfig(_Section):
-    """The last pose, saved atomically and used as the initial belief at the next start."""
-
-    state_file: Path = Field(Path("/var/lib/lino-loc/state.json"))
-    save_period_s: float = Field(5.0, gt=0.0, description="seconds between saves")
-    restore: bool = Field(True, description="start from the saved pose (as AMCL does)")
-
-    @field_validator("state_file")
-    @classmethod
-    def _expand(cls, v: Path) -> Path:
-        return v.expanduser()
 
 
 class LoggingConfig(_Section):
@@ -261,7 +246,7 @@ class ServiceConfig(BaseSettings):
     devices: DevicesConfig = Field(default_factory=DevicesConfig)
     map: MapConfig = Field(default_factory=MapConfig)
     localizer: LocalizerConfig = Field(default_factory=LocalizerConfig)
-    active_vision: ActiveVisionConfig = Field(default_factory=ActiveVisionConfig)
+    active_vision: ActiveVisionSettings = Field(default_factory=ActiveVisionSettings)
     endpoints: EndpointsConfig = Field(default_factory=EndpointsConfig)
     publish: PublishConfig = Field(default_factory=PublishConfig)
     persistence: PersistenceConfig = Field(default_factory=PersistenceConfig)
@@ -337,6 +322,47 @@ SIM_OVERRIDES: dict[str, Any] = {
 # --------------------------------------------------------------------------------------------
 # loading and checking
 # --------------------------------------------------------------------------------------------
+
+
+#: Keys that were settings once: dotted key -> what became of it ("renamed to NEW" or "no
+#: longer a setting: ..."). A file or variable using one fails with that line.
+RETIRED_KEYS: dict[str, str] = {
+    **{
+        f"active_vision.{k}": "no longer a setting: the active-vision method's own default "
+        f"(lino_loc.active_vision.ActiveVisionConfig.{k})"
+        for k in METHOD_SETTINGS
+    },
+    "publish.status_period_s": "no longer a setting: one status message a second "
+    "(services.status.STATUS_PERIOD_S)",
+}
+
+
+def _retired_message(key: str) -> str:
+    what = RETIRED_KEYS[key]
+    return what if what.startswith("no longer") else f"renamed to {what}"
+
+
+def _retired_in(data: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """The retired keys present in a nested mapping (dotted, in file order)."""
+    found = []
+    for k, v in data.items():
+        key = f"{prefix}{k}"
+        if key in RETIRED_KEYS:
+            found.append(key)
+        elif isinstance(v, Mapping):
+            found.extend(_retired_in(v, key + "."))
+    return found
+
+
+def _retired_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """Retired key -> the LINO_LOC__ variable that sets it."""
+    out = {}
+    for name in sorted(environ):
+        if name.upper().startswith(ENV_PREFIX):
+            key = ".".join(name[len(ENV_PREFIX) :].lower().split(ENV_DELIMITER))
+            if key in RETIRED_KEYS:
+                out[key] = name
+    return out
 
 
 class ConfigError(LinoLocError):
@@ -434,8 +460,14 @@ def read_toml(path: str | Path) -> dict[str, Any]:
 
 def _validate(data: dict[str, Any], label: str, environ: Mapping[str, str]) -> ServiceConfig:
     problems: list[str] = []
-    seen: set[str] = set()
-    for p in _unknown_env(environ):
+    retired_env = _retired_env(environ)
+    seen: set[str] = set(retired_env)
+    for key in _retired_in(data):
+        problems.append(f"{label}: {key}: {_retired_message(key)}")
+        seen.add(key)
+    for key, name in retired_env.items():
+        problems.append(f"{label}: {key}: {_retired_message(key)} (from environment {name})")
+    for p in _unknown_env({k: v for k, v in environ.items() if k not in retired_env.values()}):
         problems.append(f"{label}: {p}")
         seen.add(p.split(":", 1)[0])
     try:
@@ -444,6 +476,8 @@ def _validate(data: dict[str, Any], label: str, environ: Mapping[str, str]) -> S
         for err in exc.errors(include_url=False):
             loc = tuple(err.get("loc", ()))
             where = _format_loc(loc)
+            if where in seen and err.get("type") == "extra_forbidden" and where in RETIRED_KEYS:
+                continue  # already reported as a retired key
             env = _env_for(loc, environ)
             if env is not None and where in seen:
                 continue  # already reported as an unknown environment variable

@@ -1,4 +1,4 @@
-"""The daemon's control socket: a ZeroMQ REP server in its own thread (design.md 4.4).
+"""The daemon's control socket: a ZeroMQ REP server in its own thread, and its handlers.
 
 One JSON request in, one JSON reply out. Every received message is turned by
 :func:`services.messages.parse_request` into a request model or an error reply (malformed
@@ -6,7 +6,9 @@ JSON, not an object, unknown ``cmd``, bad fields, too large, several frames): th
 always answers, and nothing a client sends can raise out of this thread or reach the
 localization loop unchecked.
 
-Valid requests go to a handler (the daemon). Requests that change the filter
+Valid requests go to a handler: :class:`ControlHandlers`, one method per request class
+(:data:`ControlHandlers.dispatch`, keyed by the pydantic request model; a request class with
+no handler gets an error reply). Requests that change the filter
 (``set_pose``, ``global_localization``) must run in the loop's thread, between two
 updates: the handler puts them on a :class:`CommandQueue` and waits for the loop to apply
 them (:meth:`CommandQueue.call`, bounded by a timeout, so a busy loop gives an error reply
@@ -15,7 +17,8 @@ answered from snapshots the loop keeps under a lock, without waiting for it.
 
 Usage::
 
-    server = ControlServer(ctx, "tcp://127.0.0.1:5557", handler=daemon.handle_request)
+    handlers = ControlHandlers(commands, localizer, poses, status, active, saver, checksum)
+    server = ControlServer(ctx, "tcp://127.0.0.1:5557", handler=handlers)
     server.start(); ...; server.stop()
 """
 
@@ -24,15 +27,46 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import zmq
 from pydantic import BaseModel
 
-from services.messages import ErrorReply, encode_reply, error_reply, parse_request
+from lino_loc import __version__
+from services.messages import (
+    AckReply,
+    ControlStateReply,
+    ErrorReply,
+    GetPoseReply,
+    GetPoseRequest,
+    GlobalLocalizationRequest,
+    PauseRequest,
+    PingReply,
+    PingRequest,
+    ResumeRequest,
+    SaveStateReply,
+    SaveStateRequest,
+    SetActiveVisionRequest,
+    SetPoseRequest,
+    StatusReply,
+    StatusRequest,
+    encode_reply,
+    error_reply,
+    parse_request,
+)
+from services.persistence import SavedState
+
+if TYPE_CHECKING:
+    from lino_loc.localizer import Localizer
+    from services.active_head import ActiveHead
+    from services.persistence import StateSaver
+    from services.publisher import PosePublisher
+    from services.status import StatusReporter
 
 log = logging.getLogger("lino_loc.service.control")
 
@@ -155,3 +189,91 @@ class ControlServer(threading.Thread):
         self._stop_event.set()
         if self.is_alive():
             self.join(timeout)
+
+
+class ControlHandlers:
+    """The daemon's answers to the control requests, dispatched on the request's class.
+
+    Read-only requests are answered from snapshots (the status reporter, the last published
+    pose); ``set_pose`` and ``global_localization`` run in the loop's thread through
+    ``commands``; ``pause``/``resume``/``set_active_vision`` flip the switches of
+    :class:`services.active_head.ActiveHead`; ``save_state`` writes the last ``tracking``
+    estimate synchronously (error reply when there is none or the write fails)."""
+
+    def __init__(
+        self,
+        commands: CommandQueue,
+        localizer: Localizer,
+        poses: PosePublisher,
+        status: StatusReporter,
+        active: ActiveHead,
+        saver: StateSaver,
+        map_checksum: str | None = None,
+    ) -> None:
+        self.commands = commands
+        self.localizer = localizer
+        self.poses = poses
+        self.status = status
+        self.active = active
+        self.saver = saver
+        self.map_checksum = map_checksum
+        self.dispatch: dict[type[BaseModel], Callable[[Any], BaseModel]] = {
+            PingRequest: self.ping,
+            StatusRequest: self.status_reply,
+            GetPoseRequest: self.get_pose,
+            SetPoseRequest: self.set_pose,
+            GlobalLocalizationRequest: self.global_localization,
+            PauseRequest: self.pause_or_resume,
+            ResumeRequest: self.pause_or_resume,
+            SetActiveVisionRequest: self.set_active_vision,
+            SaveStateRequest: self.save_state,
+        }
+
+    def __call__(self, req: Any) -> BaseModel:
+        """The reply to one parsed request (called in the control thread)."""
+        handler = self.dispatch.get(type(req))
+        if handler is None:
+            cmd = getattr(req, "cmd", None)
+            return error_reply(f"cmd: {cmd!r} is not handled by this daemon", cmd=cmd)
+        return handler(req)
+
+    def ping(self, _req: PingRequest) -> PingReply:
+        return PingReply(stamp=time.time(), version=__version__)
+
+    def status_reply(self, _req: StatusRequest) -> StatusReply:
+        return StatusReply(status=self.status.build())
+
+    def get_pose(self, _req: GetPoseRequest) -> GetPoseReply:
+        return GetPoseReply(pose=self.poses.latest()[0])
+
+    def set_pose(self, req: SetPoseRequest) -> AckReply:
+        mean = np.array(req.pose.as_tuple(), dtype=np.float64)
+        cov = np.asarray(req.covariance, dtype=np.float64).reshape(3, 3)
+        self.commands.call(lambda: self.localizer.set_pose(mean, cov))
+        log.info("set_pose (%.2f, %.2f, %.2f) from the control socket", *mean)
+        return AckReply(
+            cmd="set_pose", message=f"belief set around ({mean[0]:.3f}, {mean[1]:.3f}, {mean[2]:.3f})"
+        )
+
+    def global_localization(self, _req: GlobalLocalizationRequest) -> AckReply:
+        self.commands.call(self.localizer.start_global)
+        log.info("global localization requested on the control socket")
+        return AckReply(cmd="global_localization", message="belief spread over the map")
+
+    def pause_or_resume(self, req: PauseRequest | ResumeRequest) -> ControlStateReply:
+        self.active.set_paused(req.target, req.cmd == "pause")
+        return ControlStateReply(cmd=req.cmd, active_vision=self.active.info())
+
+    def set_active_vision(self, req: SetActiveVisionRequest) -> ControlStateReply:
+        self.active.set_enabled(req.enabled, self.commands.call)
+        return ControlStateReply(cmd=req.cmd, active_vision=self.active.info())
+
+    def save_state(self, req: SaveStateRequest) -> BaseModel:
+        est = self.poses.latest()[1]
+        state = SavedState.of_estimate(est, self.map_checksum)
+        if state is None:
+            now = "starting" if est is None else est.state
+            return error_reply(f"save_state: no converged pose to save yet (state {now})", cmd=req.cmd)
+        if not self.saver.write(state):
+            return error_reply(f"save_state: {self.saver.last_error}", cmd=req.cmd)
+        return SaveStateReply(path=str(self.saver.path), stamp=state.saved_at)

@@ -1,10 +1,10 @@
-"""Everything on the ZeroMQ wire, as pydantic models (design.md section 4.4, a **contract**).
+"""Everything on the ZeroMQ wire, as pydantic models (a **contract**, docs/zeromq.md).
 
 Two sockets (addresses from ``[endpoints]`` of the configuration):
 
 - **PUB** (``tcp://127.0.0.1:5556``): every message is two frames ``[topic, json]``.
   ``pose`` (:class:`PoseMessage`, every filter update), ``status`` (:class:`StatusMessage`,
-  every ``publish.status_period_s``), ``particles`` (:class:`ParticlesMessage`, throttled,
+  once a second), ``particles`` (:class:`ParticlesMessage`, throttled,
   possibly subsampled) and, in simulation, ``truth`` (:class:`TruthMessage`).
 - **REP** (``tcp://127.0.0.1:5557``): one JSON object in (a :data:`Request`, discriminated
   by ``"cmd"``), one JSON object out (``{"ok": true, "cmd": ..., ...}`` or
@@ -279,7 +279,7 @@ class ActiveVisionInfo(BaseModel):
 
 
 class StatusMessage(_Published):
-    """Topic ``status`` (every ``publish.status_period_s``) and the ``status`` reply."""
+    """Topic ``status`` (once a second) and the ``status`` reply."""
 
     stamp: Finite = Field(ge=0.0, description="s since the Unix epoch")
     state: Literal["starting", "global", "tracking", "lost"]

@@ -11,26 +11,51 @@ folder ``fsync``-ed): after a crash or ``kill -9`` the file holds either the old
 state, never a mixture. :func:`load_state` returns None for a missing file and, with a
 warning, for a corrupt, foreign or invalid one (the daemon then localizes globally).
 
+The daemon writes off its loop's thread: :class:`StateSaver` is a thread that writes the
+latest :class:`SavedState` handed to it (a newer one replaces one not yet written), and
+writes synchronously at shutdown and on the control socket's ``save_state``. Only a
+``tracking`` estimate is saved (:meth:`SavedState.of_estimate`): a global or lost belief is
+no pose to restart from.
+
 Usage::
 
     save_state(path, SavedState.from_estimate(pose, cov, stamp, "tracking"))
     state = load_state(path)          # SavedState or None
+    saver = StateSaver(path); saver.start(); saver.submit(state); saver.stop()
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from lino_loc.atomic_file import atomic_write
+from lino_loc.pose_estimate import Estimate
 from services.messages import Covariance, Pose2D
 
 log = logging.getLogger("lino_loc.service.persistence")
+
+class PersistenceConfig(BaseModel):
+    """The service's ``[persistence]`` section: the last pose, saved atomically and used as the
+    initial belief at the next start."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    state_file: Path = Field(Path("/var/lib/lino-loc/state.json"))
+    save_period_s: float = Field(5.0, gt=0.0, description="seconds between saves")
+    restore: bool = Field(True, description="start from the saved pose (as AMCL does)")
+
+    @field_validator("state_file")
+    @classmethod
+    def _expand(cls, v: Path) -> Path:
+        return v.expanduser()
+
 
 STATE_FORMAT = "lino-loc-state"
 STATE_VERSION = 1
@@ -72,6 +97,16 @@ class SavedState(BaseModel):
             covariance=[float(v) for v in c.reshape(-1)],
             state=state,
             map_checksum=map_checksum,
+        )
+
+    @classmethod
+    def of_estimate(cls, est: Estimate | None, map_checksum: str | None = None) -> SavedState | None:
+        """The state to save for a filter estimate: None unless it is ``tracking``; stamped
+        with the estimate's time (the clock when it has none)."""
+        if est is None or est.state != "tracking":
+            return None
+        return cls.from_estimate(
+            est.pose, est.covariance, est.stamp or time.time(), est.state, map_checksum
         )
 
     def mean(self) -> np.ndarray:
@@ -116,3 +151,53 @@ def load_state(path: str | Path) -> SavedState | None:
     except ValueError as exc:
         log.warning("%s: corrupt saved state (%s); ignoring it", path, exc)
         return None
+
+
+class StateSaver(threading.Thread):
+    """Writes the :class:`SavedState` handed to it (latest wins), off the caller's thread.
+
+    :meth:`submit` returns at once; :meth:`write` writes in the caller's thread and returns
+    False (with :attr:`last_error`, and a warning) when the file cannot be written. The
+    thread ends after :meth:`stop`, dropping a state not yet written."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(name="state-saver", daemon=True)
+        self.path = path
+        self._cond = threading.Condition()
+        self._pending: SavedState | None = None
+        self._closing = False
+        self.saves = 0
+        self.last_error: str | None = None
+
+    def submit(self, state: SavedState) -> None:
+        with self._cond:
+            self._pending = state
+            self._cond.notify()
+
+    def run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending is not None or self._closing)
+                state, self._pending = self._pending, None
+                if state is None and self._closing:
+                    return
+            if state is not None:
+                self.write(state)
+
+    def write(self, state: SavedState) -> bool:
+        try:
+            save_state(self.path, state)
+            self.saves += 1
+            self.last_error = None
+            return True
+        except OSError as exc:
+            self.last_error = f"{self.path}: {exc.strerror or exc}"
+            log.warning("cannot save the pose: %s", self.last_error)
+            return False
+
+    def stop(self) -> None:
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        if self.is_alive():
+            self.join(2.0)

@@ -1,12 +1,12 @@
 """The daemon's ZeroMQ pose stream: a publisher that never blocks, and rate limits.
 
-:class:`Publisher` binds an XPUB socket (design.md 4.4: every message is two frames
+:class:`Publisher` binds an XPUB socket (every message is two frames
 ``[topic, json]``). It behaves as a PUB socket for the subscribers; XPUB is used because it
 also delivers the subscriptions, so the daemon knows how many clients are listening and
 to which topics (:attr:`Publisher.subscriptions`), and can skip serializing topics nobody
 wants (the particle set is the largest message).
 
-Never blocking (issue 5): each subscriber has a send queue of ``sndhwm`` messages
+Never blocking: each subscriber has a send queue of ``sndhwm`` messages
 (``ZMQ_SNDHWM``); when a subscriber does not read, ZeroMQ drops further messages *for that
 subscriber only* once its queue is full, and the other subscribers and the loop are not
 affected. Every send uses ``zmq.NOBLOCK``; a send that fails anyway (``EAGAIN`` or another
@@ -17,7 +17,15 @@ republishes the simulator's truth): sends are serialized by a lock. A send with 
 takes microseconds, so the lock is never held for long.
 
 :class:`RateLimiter` throttles the ``particles`` topic (``publish.particles_max_rate_hz``)
-and paces ``status`` (``publish.status_period_s``).
+and paces ``status`` (:data:`services.status.STATUS_PERIOD_S`).
+
+:class:`PosePublisher` is what the daemon's loop calls after each filter update: it numbers
+the update (``seq``), publishes its :class:`services.messages.PoseMessage` on ``pose``, keeps
+it (and the estimate) as the latest for the control thread, and publishes the particle set
+on ``particles`` when a subscriber wants it and the rate limit allows: a uniform random
+subset of ``particles_max_count`` particles without replacement when there are more (drawn
+from the publisher's own seeded generator, never the filter's), with the weights of the
+subset normalised to sum to 1 (uniform when they sum to 0).
 
 Usage::
 
@@ -25,21 +33,37 @@ Usage::
     pub.publish("pose", PoseMessage(...))
     limiter = RateLimiter(2.0)
     if limiter.ready(time.monotonic()): pub.publish("particles", msg)
+    poses = PosePublisher(pub, cfg.publish, localizer.particles)
+    msg = poses.publish(estimate, stamp=frame.stamp, pan=pan)   # None if invalid
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import zmq
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 
-from services.messages import encode
+from lino_loc.pose_estimate import Estimate
+from services.messages import ParticlesMessage, PoseMessage, encode
 
 log = logging.getLogger("lino_loc.service.publisher")
+
+
+class PublishConfig(BaseModel):
+    """The service's ``[publish]`` section: what is published besides the poses."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    particles_max_rate_hz: float = Field(2.0, ge=0.0, description="0 = never publish particles")
+    particles_max_count: int = Field(500, ge=1, description="subsample the particle set to this many")
+    truth: bool = Field(True, description="republish the simulator's true pose (simulation only)")
 
 
 class RateLimiter:
@@ -149,3 +173,76 @@ class Publisher:
             if not self._closed:
                 self._closed = True
                 self._sock.close(linger=0)
+
+
+#: Seed of the generator that picks the published subset of particles.
+PARTICLE_SUBSET_SEED = 0
+
+ParticleSource = Callable[[], tuple[np.ndarray, np.ndarray]]
+
+
+class PosePublisher:
+    """Poses and particles of each update on a :class:`Publisher` (module docstring).
+
+    ``particles`` returns copies of the filter's particles (M x 3) and linear weights (M,)
+    (``Localizer.particles``). :meth:`latest` may be called from any thread."""
+
+    def __init__(self, publisher: Publisher, cfg: PublishConfig, particles: ParticleSource) -> None:
+        self.publisher = publisher
+        self.cfg = cfg
+        self.particles = particles
+        self.seq = 0
+        self.published = 0
+        self._limiter = RateLimiter(cfg.particles_max_rate_hz)
+        self._rng = np.random.default_rng(PARTICLE_SUBSET_SEED)
+        self._lock = threading.Lock()
+        self._last_pose: PoseMessage | None = None
+        self._last_estimate: Estimate | None = None
+
+    def latest(self) -> tuple[PoseMessage | None, Estimate | None]:
+        """The last published pose message and the estimate it came from."""
+        with self._lock:
+            return self._last_pose, self._last_estimate
+
+    def publish(
+        self, est: Estimate, *, stamp: float, pan: float | None, dead_reckoning: bool = False
+    ) -> PoseMessage | None:
+        """Publish the pose of ``est`` (and maybe the particles); None when the estimate holds
+        a non-finite value (logged, nothing published, ``seq`` still counts the update)."""
+        self.seq += 1
+        try:
+            msg = PoseMessage.from_estimate(
+                est, stamp=stamp, seq=self.seq, pan=pan, dead_reckoning=dead_reckoning
+            )
+        except ValueError as exc:
+            log.warning("pose not published (invalid estimate): %s", exc)
+            return None
+        self.publisher.publish("pose", msg)
+        with self._lock:
+            self._last_pose, self._last_estimate = msg, est
+        self.published += 1
+        return msg
+
+    def publish_particles(self, stamp: float) -> bool:
+        """Publish the particle set of update ``seq`` if wanted and due; True if sent."""
+        if not self._limiter.ready(time.monotonic()) or not self.publisher.wanted("particles"):
+            return False
+        return self.publisher.publish("particles", self.particles_message(stamp))
+
+    def particles_message(self, stamp: float) -> ParticlesMessage:
+        """The (maybe subsampled) particle set with normalised weights."""
+        p, w = self.particles()
+        n = p.shape[0]
+        cap = self.cfg.particles_max_count
+        if n > cap:
+            idx = self._rng.choice(n, size=cap, replace=False)
+            p, w = p[idx], w[idx]
+        total = float(w.sum())
+        w = w / total if total > 0 else np.full(len(w), 1.0 / max(len(w), 1))
+        return ParticlesMessage(
+            stamp=stamp,
+            seq=self.seq,
+            poses=[tuple(float(v) for v in row) for row in p],
+            weights=[float(v) for v in w],
+            n_total=n,
+        )

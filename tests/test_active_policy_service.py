@@ -1,4 +1,4 @@
-"""The seam between the daemon and active vision (services/daemon.py ``make_active_policy``):
+"""The seam between the daemon and active vision (services/active_head.py ``make_active_policy``):
 the policy it builds always decides; the daemon's own switch (``av_enabled``, the control
 socket's ``set_active_vision``) says whether it is called. A configuration with
 ``[active_vision] enabled = false`` that is switched on at run time must move the head."""
@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -16,8 +15,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_localizer import _config, _world  # noqa: E402
 
 from lino_loc.localizer import Localizer
+from services.active_head import make_active_policy
 from services.config import ServiceConfig
-from services.daemon import make_active_policy
+
+
+def _head_limits(cfg: ServiceConfig) -> tuple[float, float]:
+    return (cfg.devices.head.pan_min, cfg.devices.head.pan_max)
 
 
 def _uniform_belief(n: int = 200) -> tuple[np.ndarray, np.ndarray]:
@@ -29,18 +32,20 @@ def _uniform_belief(n: int = 200) -> tuple[np.ndarray, np.ndarray]:
 def test_policy_decides_even_when_the_file_disables_active_vision() -> None:
     m, _, _ = _world()
     cfg = ServiceConfig(active_vision={"enabled": False, "pan_min": -1.0, "pan_max": 1.0})
-    policy = make_active_policy(cfg, Localizer(m, _config()), None)
+    policy = make_active_policy(cfg.active_vision, Localizer(m, _config()), _head_limits(cfg))
     p, lw = _uniform_belief()
     d = policy.decide(p, lw, state="global", log_likelihood=-5.0, pan=0.0, moving=False, now=100.0)
     assert d.reason != "disabled"
     assert d.command is not None and -1.0 <= d.command <= 1.0
 
 
-def test_policy_keeps_inside_the_reported_head_limits() -> None:
+def test_policy_keeps_inside_the_head_limits() -> None:
     m, _, _ = _world()
-    cfg = ServiceConfig(active_vision={"pan_min": -2.6, "pan_max": 2.6})
-    limits = SimpleNamespace(pan_min=-0.5, pan_max=0.25)
-    policy = make_active_policy(cfg, Localizer(m, _config()), limits)
+    cfg = ServiceConfig(
+        devices={"head": {"pan_min": -0.5, "pan_max": 0.25}},
+        active_vision={"pan_min": -0.5, "pan_max": 0.25},
+    )
+    policy = make_active_policy(cfg.active_vision, Localizer(m, _config()), _head_limits(cfg))
     assert (policy.pan_lo, policy.pan_hi) == (-0.5, 0.25)
     p, lw = _uniform_belief()
     d = policy.decide(p, lw, state="global", log_likelihood=-5.0, pan=0.0, moving=False, now=100.0)

@@ -115,7 +115,6 @@ rep = "{rep}"
 sndhwm = 50
 [publish]
 particles_max_rate_hz = 0.0
-status_period_s = 1.0
 truth = false
 [persistence]
 state_file = "{state}"

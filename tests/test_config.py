@@ -20,6 +20,7 @@ from services.config import (
     load_config,
     to_toml,
 )
+from services.status import STATUS_PERIOD_S
 
 ROOT = Path(__file__).resolve().parents[1]
 LINO = ROOT / "config" / "lino.toml"
@@ -58,8 +59,8 @@ def test_defaults_are_the_real_robot():
     head = cfg.devices.head
     assert (head.kind, head.baudrate, head.pan_id, head.tilt_id) == ("dynamixel", 1_000_000, 1, 2)
     assert cfg.endpoints.pub == "tcp://127.0.0.1:5556" and cfg.endpoints.rep == "tcp://127.0.0.1:5557"
-    assert cfg.active_vision.n_actions == 22
-    assert cfg.publish.status_period_s == 1.0
+    assert cfg.active_vision.method_config().n_actions == 22
+    assert STATUS_PERIOD_S == 1.0
 
 
 @pytest.mark.parametrize("path", [LINO, SIM])
@@ -116,7 +117,7 @@ fps = -1
 pub = "localhost:5556"
 
 [active_vision]
-n_actions = "many"
+min_interval_s = "many"
 
 [loging]
 level = "DEBUG"
@@ -132,7 +133,7 @@ def test_check_reports_every_error_with_its_field_path(tmp_path, capsys):
         "devices.camera.kind": "'oakd' or 'sim'",
         "devices.camera.oakd.fps": "greater than 0",
         "endpoints.pub": "not a ZeroMQ endpoint",
-        "active_vision.n_actions": "valid integer",
+        "active_vision.min_interval_s": "valid number",
         "loging": "unknown key",
     }
     assert len(problems) == len(expected), problems
@@ -263,3 +264,67 @@ def test_schema_command_prints_the_config_schema(capsys):
     assert _cli(["config", "schema"]) == 0
     schema = json.loads(capsys.readouterr().out)
     assert set(schema["properties"]) == set(config_as_dict(ServiceConfig()))
+
+
+# ------------------------------------------------------------------ retired keys
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "says"),
+    [
+        ("[active_vision]\nn_actions = 22\n", "active_vision.n_actions", "no longer a setting"),
+        ("[active_vision]\ntrigger_doubt = 0.5\n", "active_vision.trigger_doubt",
+         "lino_loc.active_vision.ActiveVisionConfig.trigger_doubt"),
+        ("[publish]\nstatus_period_s = 1.0\n", "publish.status_period_s", "STATUS_PERIOD_S"),
+    ],
+)
+def test_a_retired_key_fails_with_one_line(tmp_path, capsys, text, key, says):
+    path = _write(tmp_path, text)
+    (line,) = check_config(path)
+    assert line.startswith(f"{path}: {key}: ") and says in line
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == line
+    assert _cli(["config", "check", str(path)]) == 2
+    assert capsys.readouterr().out.splitlines() == [line]
+
+
+def test_run_with_a_retired_key_exits_2_with_one_line(tmp_path, capsys):
+    from services.cli import main
+
+    path = _write(tmp_path, "[active_vision]\nmax_particles = 150\n")
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"lino-loc: error: {path}: active_vision.max_particles: no longer a setting: the "
+                   "active-vision method's own default (lino_loc.active_vision.ActiveVisionConfig.max_particles)"]
+
+
+def test_a_retired_key_from_the_environment_is_one_line(monkeypatch):
+    monkeypatch.setenv("LINO_LOC__ACTIVE_VISION__MOVE_COST", "0.1")
+    (line,) = check_config(LINO)
+    assert line == (f"{LINO}: active_vision.move_cost: no longer a setting: the active-vision method's own "
+                    "default (lino_loc.active_vision.ActiveVisionConfig.move_cost) "
+                    "(from environment LINO_LOC__ACTIVE_VISION__MOVE_COST)")
+
+
+def test_a_renamed_key_names_the_new_one(tmp_path, monkeypatch):
+    from services import config as config_module
+
+    monkeypatch.setitem(config_module.RETIRED_KEYS, "persistence.file", "persistence.state_file")
+    (line,) = check_config(_write(tmp_path, '[persistence]\nfile = "/x"\n'))
+    assert line.endswith("persistence.file: renamed to persistence.state_file")
+
+
+def test_retired_keys_are_not_settings():
+    from services.config import RETIRED_KEYS
+
+    def leaves(model, prefix=""):
+        from services.config import _model_of
+
+        out = set()
+        for name, f in model.model_fields.items():
+            m = _model_of(f.annotation)
+            out |= leaves(m, f"{prefix}{name}.") if m is not None else {prefix + name}
+        return out
+
+    assert not set(RETIRED_KEYS) & leaves(ServiceConfig)

@@ -117,3 +117,103 @@ def test_server_answers_garbage_and_keeps_serving() -> None:
         server.stop()
         ctx.term()
     assert not server.is_alive()
+
+
+# ------------------------------------------------------------------ the daemon's handlers
+def _handlers(tmp_path, est=None):  # noqa: ANN001, ANN202
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from service_fakes import FakeHeads, FakeLocalizer, FakeWorker, HeadReading
+
+    from services.active_head import ActiveHead
+    from services.config import ServiceConfig
+    from services.control import ControlHandlers
+    from services.persistence import StateSaver
+
+    class Poses:
+        def latest(self):  # noqa: ANN202
+            return (None, est)
+
+    class Status:
+        def build(self):  # noqa: ANN202
+            from services.messages import StatusMessage
+
+            return StatusMessage(stamp=1.0, state="tracking", pose_rate_hz=0.0, frame_rate_hz=0.0, uptime_s=1.0)
+
+    loc = FakeLocalizer()
+    cfg = ServiceConfig()
+    active = ActiveHead(cfg.active_vision, (-2.6, 2.6), loc, FakeHeads(HeadReading()), FakeWorker())  # type: ignore[arg-type]
+    q = CommandQueue()
+    h = ControlHandlers(q, loc, Poses(), Status(), active, StateSaver(tmp_path / "state.json"), "sum")  # type: ignore[arg-type]
+    return h, q, loc
+
+
+def _ask(h, raw: bytes, q: CommandQueue | None = None):  # noqa: ANN001, ANN202
+    if q is None:
+        return parse_reply(handle_raw([raw], h))
+    out = []
+    t = threading.Thread(target=lambda: out.append(parse_reply(handle_raw([raw], h))))
+    t.start()
+    deadline = time.monotonic() + 2.0
+    while t.is_alive() and time.monotonic() < deadline:
+        q.run_pending()
+        time.sleep(0.005)
+    t.join()
+    return out[0]
+
+
+def test_every_request_class_has_a_handler(tmp_path) -> None:  # noqa: ANN001
+    from services.messages import COMMANDS
+
+    h, _, _ = _handlers(tmp_path)
+    assert set(h.dispatch) == set(COMMANDS.values())
+
+
+def test_unknown_request_class_is_an_error_reply(tmp_path) -> None:  # noqa: ANN001
+    from services.messages import PingRequest
+
+    h, _, _ = _handlers(tmp_path)
+    del h.dispatch[PingRequest]
+    reply = json.loads(handle_raw([b'{"cmd": "ping"}'], h))
+    assert reply["ok"] is False and "'ping' is not handled" in reply["error"]
+
+
+def test_handlers_answer_and_filter_commands_run_in_the_loop(tmp_path) -> None:  # noqa: ANN001
+    from services.messages import ControlStateReply, GetPoseReply, StatusReply
+
+    h, q, loc = _handlers(tmp_path)
+    assert isinstance(_ask(h, b'{"cmd": "ping"}'), PingReply)
+    assert isinstance(_ask(h, b'{"cmd": "status"}'), StatusReply)
+    assert _ask(h, b'{"cmd": "get_pose"}') == GetPoseReply(pose=None)
+    r = _ask(h, b'{"cmd": "set_pose", "pose": {"x": 1, "y": 2, "theta": 0.5}}', q)
+    assert isinstance(r, AckReply) and loc.calls[0][0] == "set_pose" and list(loc.calls[0][1]) == [1, 2, 0.5]
+    assert isinstance(_ask(h, b'{"cmd": "global_localization"}', q), AckReply)
+    assert loc.calls[-1] == ("start_global",)
+    r = _ask(h, b'{"cmd": "pause", "target": "head"}')
+    assert isinstance(r, ControlStateReply) and r.active_vision.head_paused
+    r = _ask(h, b'{"cmd": "resume", "target": "head"}')
+    assert not r.active_vision.head_paused
+
+
+def test_save_state_needs_a_tracking_estimate(tmp_path) -> None:  # noqa: ANN001
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from service_fakes import estimate
+
+    from services.messages import SaveStateReply
+    from services.persistence import load_state
+
+    h, _, _ = _handlers(tmp_path)
+    r = json.loads(handle_raw([b'{"cmd": "save_state"}'], h))
+    assert r["ok"] is False and "state starting" in r["error"]
+    h, _, _ = _handlers(tmp_path, estimate("global"))
+    assert "state global" in json.loads(handle_raw([b'{"cmd": "save_state"}'], h))["error"]
+    h, _, _ = _handlers(tmp_path, estimate("tracking"))
+    r = _ask(h, b'{"cmd": "save_state"}')
+    assert isinstance(r, SaveStateReply) and r.path == str(tmp_path / "state.json")
+    saved = load_state(tmp_path / "state.json")
+    assert saved is not None and saved.map_checksum == "sum" and saved.pose.x == 1.0

@@ -115,7 +115,6 @@ rep = "{rep}"
 sndhwm = 20
 [publish]
 particles_max_rate_hz = 2.0
-status_period_s = 1.0
 [persistence]
 state_file = "{state}"
 save_period_s = 1.0

@@ -84,3 +84,41 @@ def test_replace_is_atomic_for_a_concurrent_reader(tmp_path: Path) -> None:
         got = load_state(p)
         assert got is not None and got.pose.x == float(i)
         assert os.stat(p).st_size > 0
+
+
+# ------------------------------------------------------------------ the saver thread
+def test_saver_writes_the_latest_off_thread_and_reports_errors(tmp_path: Path) -> None:
+    import time as _time
+
+    from services.persistence import StateSaver
+
+    path = tmp_path / "s.json"
+    saver = StateSaver(path)
+    saver.start()
+    try:
+        saver.submit(SavedState.from_estimate([1, 2, 3], np.eye(3), 5.0))
+        deadline = _time.monotonic() + 5.0
+        while saver.saves == 0:
+            assert _time.monotonic() < deadline
+            _time.sleep(0.01)
+    finally:
+        saver.stop()
+    assert not saver.is_alive()
+    got = load_state(path)
+    assert got is not None and got.pose.x == 1.0
+    blocked = StateSaver(tmp_path / "file" / "s.json")
+    (tmp_path / "file").write_text("not a folder")
+    assert not blocked.write(SavedState.from_estimate([0, 0, 0], np.eye(3), 1.0))
+    assert blocked.last_error is not None and "file" in blocked.last_error
+
+
+def test_only_a_tracking_estimate_is_saved() -> None:
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from service_fakes import estimate
+
+    assert SavedState.of_estimate(None) is None
+    assert SavedState.of_estimate(estimate("lost")) is None
+    s = SavedState.of_estimate(estimate("tracking", stamp=12.0), "abc")
+    assert s is not None and s.stamp == 12.0 and s.map_checksum == "abc" and s.state == "tracking"

@@ -115,3 +115,58 @@ def test_bind_error_is_an_oserror_naming_the_endpoint() -> None:
     finally:
         a.close()
         ctx.term()
+
+
+# ------------------------------------------------------------------ PosePublisher
+def test_pose_publisher_numbers_keeps_and_throttles() -> None:
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from service_fakes import FakeLocalizer, FakePublisher, estimate
+
+    from services.config import PublishConfig
+    from services.messages import ParticlesMessage
+    from services.publisher import PosePublisher
+
+    pub, loc = FakePublisher(), FakeLocalizer(n=50)
+    poses = PosePublisher(pub, PublishConfig(particles_max_count=20, particles_max_rate_hz=1000.0), loc.particles)  # type: ignore[arg-type]
+    msg = poses.publish(estimate(), stamp=10.0, pan=0.1)
+    assert msg is not None and msg.seq == 1 and msg.pan == 0.1 and poses.latest()[0] is msg
+    assert pub.messages[-1] == ("pose", msg)
+    # an invalid estimate is not published but still counted by seq
+    bad = estimate(pose=(float("nan"), 0.0, 0.0))
+    assert poses.publish(bad, stamp=11.0, pan=None) is None and poses.seq == 2
+    assert poses.latest()[0] is msg
+    assert poses.publish_particles(11.0)
+    topic, part = pub.messages[-1]
+    assert topic == "particles" and isinstance(part, ParticlesMessage)
+    assert len(part.poses) == 20 and part.n_total == 50 and part.seq == 2
+    assert abs(sum(part.weights) - 1.0) < 1e-9
+    # distinct particles of the filter's set (subset without replacement)
+    assert len({tuple(p) for p in part.poses}) == 20
+    assert all(any(np.allclose(p, q) for q in loc.p) for p in part.poses)
+    # nobody subscribed: nothing sent
+    pub.subscribed = False
+    time.sleep(0.002)
+    assert not poses.publish_particles(12.0)
+
+
+def test_particles_of_zero_weight_are_uniform() -> None:
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from service_fakes import FakeLocalizer, FakePublisher
+
+    from services.config import PublishConfig
+    from services.publisher import PosePublisher
+
+    loc = FakeLocalizer(n=4)
+    loc.w = np.zeros(4)
+    poses = PosePublisher(FakePublisher(), PublishConfig(), loc.particles)  # type: ignore[arg-type]
+    assert poses.particles_message(1.0).weights == [0.25] * 4

@@ -2,7 +2,8 @@
 
 - ``lino-loc config check FILE...``: every problem, one line each, as
   ``FILE: section.field: message`` (environment overrides included); exit 2 if any, else
-  ``FILE: ok`` and exit 0.
+  ``FILE: ok`` and exit 0. A key that is no longer a setting, or was renamed
+  (``services.config.RETIRED_KEYS``), is one such line naming its new key.
 - ``lino-loc config show [--config FILE] [--json]``: the effective configuration (defaults,
   then FILE, then ``LINO_LOC__*`` variables) as TOML, or as one JSON object.
 - ``lino-loc config schema``: the JSON Schema of the configuration (for editors).

@@ -1,4 +1,4 @@
-"""`lino-loc echo`: print the daemon's ZeroMQ stream (design.md section 4.4).
+"""`lino-loc echo`: print the daemon's ZeroMQ stream (docs/zeromq.md).
 
 A plain SUB client: connects to the PUB endpoint, subscribes to the chosen topics and
 prints one line per message, ``topic json`` (the payload exactly as received). With

@@ -1,4 +1,4 @@
-"""`lino-loc run [--config FILE]`: the localization daemon (issue 5; design.md 4.4).
+"""`lino-loc run [--config FILE]`: the localization daemon (services.daemon).
 
 Which robot:
 - ``--config FILE``: that configuration (plus ``LINO_LOC__*`` environment overrides).

@@ -1,0 +1,79 @@
+"""The daemon's active vision (services/active_head.py): the switches decide whether the
+policy is asked, its command goes to the head, frames during head motion are counted by the
+head-settle rule, and a failing policy does not stop the loop."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from service_fakes import FakeHeads, FakeLocalizer, FakeWorker, HeadReading, estimate  # noqa: E402
+
+from lino_loc.active_vision import Decision
+from services.active_head import ActiveHead
+from services.config import ServiceConfig
+
+
+class FakePolicy:
+    def __init__(self, command: float | None = 0.7, fail: bool = False) -> None:
+        self.command, self.fail, self.calls = command, fail, []
+
+    def decide(self, particles, log_weights, **kw):  # noqa: ANN001, ANN003, ANN201
+        self.calls.append(kw)
+        if self.fail:
+            raise RuntimeError("boom")
+        return Decision(self.command, "move" if self.command is not None else "converged")
+
+
+def _active(enabled: bool = True, reading: HeadReading | None = None) -> tuple[ActiveHead, FakeWorker]:
+    cfg = ServiceConfig(active_vision={"enabled": enabled, "settle_s": 0.2})
+    head = FakeWorker()
+    a = ActiveHead(cfg.active_vision, (-2.6, 2.6), FakeLocalizer(), FakeHeads(reading or HeadReading()), head)  # type: ignore[arg-type]
+    return a, head
+
+
+def test_step_sends_the_policy_command_to_the_head() -> None:
+    a, head = _active()
+    a.policy = FakePolicy(0.7)  # type: ignore[assignment]
+    assert a.step(estimate(doubt=0.3), stamp=5.0) == 0.7
+    assert head.commands == [(0.7, 0.0)]
+    call = a.policy.calls[0]  # type: ignore[union-attr]
+    assert call["frame_stamp"] == 5.0 and call["doubt"] == 0.3 and call["state"] == "tracking"
+    info = a.info()
+    assert info.head_commands == 1 and info.last_command_rad == 0.7 and info.last_decision == "move"
+
+
+def test_switches_gate_the_policy() -> None:
+    a, head = _active()
+    a.policy = FakePolicy(0.7)  # type: ignore[assignment]
+    for target in ("active_vision", "head"):
+        a.set_paused(target, True)
+        assert a.step(estimate(), 1.0) is None
+        a.set_paused(target, False)
+    assert a.step(estimate(), 1.0) == 0.7
+    a.set_enabled(False, run_in_loop=lambda fn: fn())
+    assert head.commands[-1] == (0.0, 0.0)  # looks ahead again
+    assert a.step(estimate(), 2.0) is None and not a.info().enabled
+
+
+def test_failing_policy_is_skipped() -> None:
+    a, head = _active()
+    a.policy = FakePolicy(fail=True)  # type: ignore[assignment]
+    assert a.step(estimate(), 1.0) is None and head.commands == []
+
+
+def test_frames_while_the_head_turns_or_settles_are_counted() -> None:
+    a, _ = _active()
+    assert a.frame_at_rest(10.0, moving=False, last_motion=None)
+    assert not a.frame_at_rest(10.0, moving=True, last_motion=None)
+    assert not a.frame_at_rest(10.1, moving=False, last_motion=10.0)
+    assert a.frame_at_rest(10.3, moving=False, last_motion=10.0)
+    assert a.info().frames_head_moving == 2
+
+
+def test_switching_on_builds_the_policy_in_the_loop() -> None:
+    a, _ = _active(enabled=False)
+    ran = []
+    a.set_enabled(True, run_in_loop=lambda fn: ran.append(fn))
+    assert a.info().enabled and ran == [a.ensure_policy]
