@@ -27,11 +27,11 @@ from lino_loc.errors import LinoLocError  # noqa: E402
 
 # Order here is the order in `lino-loc --help`.
 COMMAND_MODULES: tuple[str, ...] = (
-    "services.commands.survey",
+    "services.commands.survey_cmd",
     "services.commands.map",
-    "services.commands.eval",
-    "services.commands.dataset",
-    "services.commands.bench",
+    "services.evaluation.commands.eval_cmd",
+    "services.commands.dataset_cmd",
+    "services.evaluation.commands.bench_cmd",
     "services.commands.config_cmd",
     "services.commands.echo",
     "services.commands.run",

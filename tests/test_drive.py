@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from drivers.sim.drive import DriveConfig, OdometryNoise, integrate, plan_drive
 from drivers.sim.world import load_world
 from lino_loc.errors import LinoLocError
 from lino_loc.poses import between, pose_distance, wrap_angle
-from services.evaluation.drive import DriveConfig, OdometryNoise, integrate, plan_drive
 
 CHANGES = ("boxes", "people")
 

@@ -14,8 +14,8 @@ from drivers.dynamixel_head import DynamixelHead, HeadConfig
 from drivers.interfaces import HealthState
 from drivers.serial_odometry import OdometryConfig, SerialOdometry
 from drivers.sim.camera import SimStereoCamera
+from drivers.sim.free_space import FreeSpace, WanderPlan
 from drivers.sim.robot import SimRobot, SimRobotConfig, TruthSample, base_step, integrate
-from drivers.sim.wander import FreeSpace, WanderPlan
 from drivers.sim.world import load_world
 from lino_loc.errors import LinoLocError
 from lino_loc.poses import between, compose, wrap_angle

@@ -15,7 +15,7 @@ goal. Commands are (v, omega) in m/s and rad/s; everything random comes from one
 seeded by ``seed``, and the plan is a function of the poses it is given, so a base stepped
 with a fixed time step follows the same path for the same seed.
 
-(``services/evaluation/drive.py`` generates drive plans for the evaluations; this one is the
+(``drivers/sim/drive.py`` generates drive plans for the evaluations; this one is the
 small, always-available plan of ``lino-loc sim``.)
 
 Usage::

@@ -4,7 +4,7 @@
 robot, so that the daemon's real drivers are what runs against it:
 
 - **base** (thread ``sim-base``, ``rate_hz`` = 50 Hz): a differential drive following a
-  :class:`drivers.sim.wander.WanderPlan` (or standing still). Each tick k at nominal time
+  :class:`drivers.sim.free_space.WanderPlan` (or standing still). Each tick k at nominal time
   t_k = t_0 + k dt takes (v, omega) from the plan for the interval [t_k, t_k+1), sets the
   wheel speeds ``v -/+ omega b / 2`` (b = track width) on the odometry board emulator and
   integrates the pose along the exact arc. A step whose end pose is not free (conservative
@@ -56,9 +56,9 @@ from drivers.interfaces import CameraIntrinsics
 from drivers.odometry_protocol import arc_step
 from drivers.sim.dynamixel_emulator import DynamixelBusEmulator
 from drivers.sim.frame_transport import encode_frame
+from drivers.sim.free_space import FreeSpace, WanderPlan
 from drivers.sim.odometry_emulator import OdometryBoardEmulator
 from drivers.sim.renderer import CameraModel, Renderer
-from drivers.sim.wander import FreeSpace, WanderPlan
 from drivers.sim.world import World, load_world
 from lino_loc.errors import LinoLocError
 

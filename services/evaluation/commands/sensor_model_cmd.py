@@ -10,7 +10,7 @@ import logging
 
 from lino_loc.errors import LinoLocError
 from lino_loc.preprocessing import PREPROCESS_METHODS
-from services.evaluation.sensor_model_eval import SensorModelSetup, plot, run
+from services.evaluation.sensor_model_error import SensorModelSetup, plot, run
 from services.evaluation.tracking import DEFAULT_PREPROCESS
 from services.progress import Progress
 
