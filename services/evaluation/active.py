@@ -424,10 +424,9 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
 def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[str]:
     """Fig. 3 (error and success against movements, all strategies, std bands) per scene
     condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
-    import matplotlib
+    from services.evaluation.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     os.makedirs(out_dir, exist_ok=True)
     files: list[str] = []

@@ -473,10 +473,9 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
 def plot(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     """Fig. 5 as a PNG in ``out_dir``: eq. 10 along the path per light (intensity dashed,
     fused dotted) and the mean +- std per light. Returns the files written."""
-    import matplotlib
+    from services.evaluation.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

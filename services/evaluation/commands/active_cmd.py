@@ -9,6 +9,7 @@ import math
 
 from lino_loc.errors import LinoLocError
 from services.evaluation.active import STRATEGIES, ActiveSetup, plot, run
+from services.evaluation.plotting import pyplot
 from services.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -46,6 +47,8 @@ def _table(result: dict) -> str:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.plot:
+        pyplot()  # fails now, in one line naming the extra, rather than after the run
     changes: tuple[str, ...] = ()
     if args.scene_changes:
         changes = tuple(c.strip() for c in args.scene_changes.split(",") if c.strip())
