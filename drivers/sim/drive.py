@@ -1,28 +1,34 @@
-"""Drive plans: a smooth simulated trajectory through a world's free space, with wheel odometry.
+"""The simulated base's drive planner, and drive plans: smooth trajectories with wheel odometry.
 
-:func:`plan_drive` drives a differential-drive robot through the free space of a world
-(:meth:`drivers.sim.world.World.is_free`, robot disc of ``radius``), inside the mapped area
-(shrunk by ``margin``), for ``duration`` seconds. The robot heads for random goals in the free
-space that it can reach along a straight segment with ``clearance`` > ``radius`` to walls and
-furniture; a simple controller turns it toward the goal with a bounded rate and slows it
-down (turning on the spot when the goal is more than ``turn_in_place_deg`` off), so the path
-is smooth and stays within a few centimetres of collision-free segments. The true motion is
-integrated at the odometry rate (``odom_rate`` Hz, 50 Hz like the odometry board).
+:class:`DrivePlanner` drives a differential-drive base through the free space of a world
+(:meth:`drivers.sim.world.World.is_free`) inside the mapped area (shrunk by ``margin``). It
+heads for random goals that it can reach along a straight segment with ``clearance`` to walls
+and furniture (segment sampled every 5 cm); a goal at least ``min_goal_distance`` away is
+preferred, else the farthest reachable one of the candidates drawn. The controller, for the
+heading error e to the goal and the distance d to it:
 
-Wheel odometry (what the robot's encoders report): per odometry tick the true left / right
-wheel travels ``d_l, d_r`` (wheel base ``wheel_base``) become
+    omega = clip(2 e, -turn_rate, turn_rate)
+    v     = 0                                             if |e| > turn_in_place_deg
+            speed cos(e) min(1, d / 0.3 m + 0.3)          otherwise
 
-    d_l' = d_l (1 + bias_l) + N(0, k^2 |d_l|),   d_r' = d_r (1 + bias_r) + N(0, k^2 |d_r|)
+so the base turns on the spot toward a goal far off its heading and slows down near it.
+Within ``arrival_radius`` of the goal it takes the next one (after a pause of
+U(0.3 s, ``max_pause_s``) with probability ``pause_probability``). With ``accel`` /
+``angular_accel`` set, v and omega follow those targets with bounded accelerations; unset,
+they are the targets. :meth:`DrivePlanner.command` gives (v, omega) for the next ``dt``
+seconds from the present pose; everything random comes from the generator it is given, so a
+base stepped with a fixed time step follows the same path for the same seed. The simulator's
+base (:mod:`drivers.sim.robot`) steps it at its kinematics rate; :func:`plan_drive` steps it
+offline for the evaluations.
 
-(a systematic scale error per wheel plus random slip growing with the distance rolled, the
-classic model of Borenstein and Feng, "Measurement and correction of systematic odometry
-errors", IEEE T-RA 1996), and the odometry pose integrates ``d_l', d_r'`` with a wheel base
-that is off by ``wheel_base_error`` (relative). The biases of a run are drawn once, from
-N(0, ``scale_bias_std``^2) per wheel, so every run has its own drift.
-
-The camera frames come at ``camera_rate`` Hz: :class:`DrivePlan` holds their stamps, the true
-robot poses, the odometry poses and the odometry increments between consecutive frames
-(``lino_loc.poses.between(odom[k-1], odom[k])``, the action ``u_t`` of eq. 3 and 5).
+:func:`plan_drive` integrates the true motion at the odometry rate (``odom_rate`` Hz) along
+exact arcs, with the wheel-odometry errors of :mod:`drivers.sim.wheel_noise` (true wheel
+travels ``d_l, d_r = ds -/+ wheel_base dtheta / 2`` per tick), and samples it at the camera
+rate: :class:`DrivePlan` holds the frames' stamps, the true robot poses, the odometry poses
+and the odometry increments between consecutive frames (``lino_loc.poses.between(odom[k-1],
+odom[k])``, the action ``u_t`` of eq. 3 and 5). Its random stream, from ``seed``: the start
+pose (unless given), the run's wheel scale errors, then per tick the goals drawn and the two
+wheels' slip.
 
 Usage::
 
@@ -40,45 +46,53 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from drivers.sim.wheel_noise import WheelOdometryNoise
 from drivers.sim.world import World
 from lino_loc.errors import LinoLocError
 from lino_loc.poses import between, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
+#: Distance (m) over which the controller slows down toward a goal (v factor d / 0.3 + 0.3).
+SLOW_DOWN_DISTANCE = 0.3
+#: A goal candidate nearer than this (m) is never taken.
+MIN_GOAL_STEP = 0.3
+#: Seconds before a planner that found no reachable goal (turning on the spot) looks again.
+RETRY_S = 0.5
 
-class OdometryNoise(BaseModel):
-    """Wheel odometry errors (see module docstring). Zeros give exact odometry."""
+
+class PlannerConfig(BaseModel):
+    """The drive planner: goal choice and controller (see module docstring). m, m/s, rad/s."""
 
     model_config = ConfigDict(extra="forbid")
 
-    slip_k: float = Field(0.005, ge=0.0, description="random slip, m^(1/2): std = k sqrt(|d|)")
-    scale_bias_std: float = Field(0.003, ge=0.0, description="std of each wheel's scale error")
-    wheel_base_error: float = Field(0.005, description="relative error of the assumed wheel base")
-
-    @classmethod
-    def exact(cls) -> OdometryNoise:
-        return cls(slip_k=0.0, scale_bias_std=0.0, wheel_base_error=0.0)
+    speed: float = Field(0.3, ge=0.0, description="top linear speed, m/s")
+    turn_rate: float = Field(0.6, gt=0.0, description="top turn rate, rad/s")
+    turn_in_place_deg: float = Field(25.0, gt=0.0, le=180.0, description="turn on the spot beyond this error")
+    arrival_radius: float = Field(0.15, gt=0.0, description="a goal this near is reached, m")
+    clearance: float = Field(0.35, gt=0.0, description="free disc radius along the goal segments, m")
+    margin: float = Field(0.2, ge=0.0, description="goals stay this far inside the mapped area, m")
+    min_goal_distance: float = Field(1.0, gt=0.0, description="preferred least distance to a new goal, m")
+    accel: float | None = Field(None, gt=0.0, description="linear acceleration bound, m/s^2; None: none")
+    angular_accel: float | None = Field(None, gt=0.0, description="angular acceleration bound, rad/s^2; None: none")
+    pause_probability: float = Field(0.0, ge=0.0, le=1.0, description="chance of a pause at a reached goal")
+    max_pause_s: float = Field(2.0, ge=0.3, description="longest pause, s")
 
 
 class DriveConfig(BaseModel):
-    """The drive: duration, rates, speeds, clearance. Units: s, Hz, m, m/s, rad/s."""
+    """An offline drive (:func:`plan_drive`): duration, rates, base, world condition, planner
+    and wheel-odometry errors. Units: s, Hz, m."""
 
     model_config = ConfigDict(extra="forbid")
 
     duration: float = Field(240.0, gt=0.0)
     camera_rate: float = Field(5.0, gt=0.0)
     odom_rate: float = Field(50.0, gt=0.0)
-    speed: float = Field(0.3, gt=0.0)
-    turn_rate: float = Field(0.6, gt=0.0)
-    turn_in_place_deg: float = Field(25.0, gt=0.0, le=180.0)
     radius: float = Field(0.25, gt=0.0, description="robot disc that must stay free")
-    clearance: float = Field(0.35, gt=0.0, description="clearance of the goal segments")
-    margin: float = Field(0.2, ge=0.0, description="goals stay this far inside the mapped area")
-    min_goal_distance: float = Field(1.0, gt=0.0)
     wheel_base: float = Field(0.4, gt=0.0)
     scene_changes: tuple[str, ...] = ()
-    noise: OdometryNoise = Field(default_factory=OdometryNoise)
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    noise: WheelOdometryNoise = Field(default_factory=WheelOdometryNoise)
 
 
 @dataclass
@@ -120,7 +134,8 @@ def _segment_free(world: World, a: FloatArray, b: FloatArray, clearance: float, 
     return bool(np.all(world.is_free(pts[:, 0], pts[:, 1], clearance, changes)))
 
 
-def _goal_box(world: World, cfg: DriveConfig) -> tuple[float, float, float, float]:
+def goal_box(world: World, cfg: PlannerConfig) -> tuple[float, float, float, float]:
+    """The mapped area shrunk by ``cfg.margin`` (xmin, xmax, ymin, ymax); LinoLocError if empty."""
     xmin, xmax, ymin, ymax = world.mapped_area
     m = cfg.margin
     if xmax - xmin <= 2 * m or ymax - ymin <= 2 * m:
@@ -128,35 +143,98 @@ def _goal_box(world: World, cfg: DriveConfig) -> tuple[float, float, float, floa
     return xmin + m, xmax - m, ymin + m, ymax - m
 
 
-def random_free_pose(world: World, cfg: DriveConfig, rng: np.random.Generator) -> FloatArray:
+def random_free_pose(world: World, cfg: PlannerConfig, rng: np.random.Generator,
+                     scene_changes: tuple[str, ...] = ()) -> FloatArray:
     """A pose uniform over the free space (clearance ``cfg.clearance``) of the goal box."""
-    x0, x1, y0, y1 = _goal_box(world, cfg)
+    x0, x1, y0, y1 = goal_box(world, cfg)
     for _ in range(200):
         c = np.column_stack([rng.uniform(x0, x1, 64), rng.uniform(y0, y1, 64)])
-        ok = world.is_free(c[:, 0], c[:, 1], cfg.clearance, cfg.scene_changes)
+        ok = world.is_free(c[:, 0], c[:, 1], cfg.clearance, scene_changes)
         if ok.any():
             p = c[int(np.flatnonzero(ok)[0])]
             return np.array([p[0], p[1], rng.uniform(-math.pi, math.pi)])
     raise LinoLocError(f"drive: no free pose found in world '{world.name}'")
 
 
-def _next_goal(world: World, cfg: DriveConfig, pos: FloatArray, rng: np.random.Generator) -> FloatArray:
-    x0, x1, y0, y1 = _goal_box(world, cfg)
-    best, best_d = None, 0.0
-    for _ in range(60):
-        c = np.column_stack([rng.uniform(x0, x1, 16), rng.uniform(y0, y1, 16)])
-        ok = world.is_free(c[:, 0], c[:, 1], cfg.clearance, cfg.scene_changes)
-        for g in c[ok]:
-            d = float(np.hypot(*(g - pos)))
-            if d < 0.3 or not _segment_free(world, pos, g, cfg.clearance, cfg.scene_changes):
-                continue
-            if d >= cfg.min_goal_distance:
-                return g
-            if d > best_d:
-                best, best_d = g, d
-    if best is not None:
+class DrivePlanner:
+    """Goal-to-goal driving through free space (see the module docstring)."""
+
+    def __init__(self, world: World, cfg: PlannerConfig, rng: np.random.Generator,
+                 scene_changes: tuple[str, ...] = ()) -> None:
+        self.world = world
+        self.cfg = cfg
+        self.rng = rng
+        self.scene_changes = world.check_changes(tuple(scene_changes))
+        self.box = goal_box(world, cfg)
+        self.goal: FloatArray | None = None
+        self.stuck = False  # the last goal search found nothing reachable
+        self.v = 0.0
+        self.omega = 0.0
+        self.goals_reached = 0
+        self._turn_lim = math.radians(cfg.turn_in_place_deg)
+        self._pause = 0.0
+        self._retry = 0.0
+
+    def next_goal(self, pos: FloatArray) -> FloatArray | None:
+        """A reachable goal from ``pos`` (x, y), or None: up to 60 rounds of 16 candidates."""
+        cfg, world, changes = self.cfg, self.world, self.scene_changes
+        x0, x1, y0, y1 = self.box
+        best, best_d = None, 0.0
+        for _ in range(60):
+            c = np.column_stack([self.rng.uniform(x0, x1, 16), self.rng.uniform(y0, y1, 16)])
+            ok = world.is_free(c[:, 0], c[:, 1], cfg.clearance, changes)
+            for g in c[ok]:
+                d = float(np.hypot(*(g - pos)))
+                if d < MIN_GOAL_STEP or not _segment_free(world, pos, g, cfg.clearance, changes):
+                    continue
+                if d >= cfg.min_goal_distance:
+                    return g
+                if d > best_d:
+                    best, best_d = g, d
         return best
-    raise LinoLocError(f"drive: stuck at ({pos[0]:.2f}, {pos[1]:.2f}) in world '{world.name}': no reachable goal")
+
+    def blocked(self) -> None:
+        """The base could not move as commanded: stop and choose another goal."""
+        self.v = 0.0
+        self.goal = None
+
+    def _update_goal(self, x: float, y: float, dt: float) -> None:
+        if self.goal is not None and float(np.hypot(*(self.goal - (x, y)))) < self.cfg.arrival_radius:
+            self.goal = None
+            self.goals_reached += 1
+            p = self.cfg.pause_probability
+            if p > 0.0 and self.rng.random() < p:
+                self._pause = float(self.rng.uniform(0.3, self.cfg.max_pause_s))
+                return
+        if self.goal is None:
+            self._retry -= dt
+            if self._retry <= 0.0:
+                self.goal = self.next_goal(np.array([x, y]))
+                self.stuck = self.goal is None
+                if self.stuck:
+                    self._retry = RETRY_S
+
+    def command(self, pose: FloatArray | tuple[float, float, float], dt: float) -> tuple[float, float]:
+        """(v, omega) for the next ``dt`` seconds from the robot pose (x, y, theta)."""
+        cfg = self.cfg
+        x, y, th = pose[0], pose[1], pose[2]
+        v_t, w_t = 0.0, 0.0
+        if self._pause > 0.0:
+            self._pause -= dt
+        else:
+            self._update_goal(x, y, dt)
+            if self.goal is not None:
+                to_goal = self.goal - (x, y)
+                err = float(wrap_angle(math.atan2(to_goal[1], to_goal[0]) - th))
+                w_t = float(np.clip(2.0 * err, -cfg.turn_rate, cfg.turn_rate))
+                v_t = 0.0 if abs(err) > self._turn_lim else cfg.speed * math.cos(err) * min(
+                    1.0, float(np.hypot(*to_goal)) / SLOW_DOWN_DISTANCE + 0.3)
+            elif self._pause <= 0.0:
+                w_t = 0.5 * cfg.turn_rate  # nowhere to go from here: turn and look again
+        self.v = v_t if cfg.accel is None else self.v + max(-cfg.accel * dt, min(cfg.accel * dt, v_t - self.v))
+        a = cfg.angular_accel
+        self.omega = w_t if a is None else self.omega + max(-a * dt, min(a * dt, w_t - self.omega))
+        return self.v, self.omega
 
 
 def plan_drive(
@@ -169,7 +247,10 @@ def plan_drive(
     cfg = cfg or DriveConfig()
     rng = np.random.default_rng(seed)
     changes = world.check_changes(cfg.scene_changes)
-    pose = random_free_pose(world, cfg, rng) if start is None else np.asarray(start, dtype=np.float64).copy()
+    if start is None:
+        pose = random_free_pose(world, cfg.planner, rng, changes)
+    else:
+        pose = np.asarray(start, dtype=np.float64).copy()
     if not bool(world.is_free(pose[0], pose[1], cfg.radius, changes)):
         raise LinoLocError(f"drive: start ({pose[0]:.2f}, {pose[1]:.2f}) is not in the free space")
     dt = 1.0 / cfg.odom_rate
@@ -178,28 +259,21 @@ def plan_drive(
     odo = np.empty((n_fine, 3))
     fine[0] = pose
     odo[0] = pose
-    nz = cfg.noise
-    bias_l, bias_r = (float(v) for v in rng.normal(0.0, nz.scale_bias_std, 2)) if nz.scale_bias_std > 0 else (0.0, 0.0)
+    encoders = cfg.noise.start(rng)
     b_true = cfg.wheel_base
-    b_odo = cfg.wheel_base * (1.0 + nz.wheel_base_error)
-    goal = _next_goal(world, cfg, pose[:2], rng)
-    turn_lim = math.radians(cfg.turn_in_place_deg)
+    b_odo = cfg.noise.odometry_wheel_base(cfg.wheel_base)
+    planner = DrivePlanner(world, cfg.planner, rng, changes)
     for i in range(1, n_fine):
-        x, y, th = fine[i - 1]
-        to_goal = goal - (x, y)
-        if float(np.hypot(*to_goal)) < 0.15:
-            goal = _next_goal(world, cfg, np.array([x, y]), rng)
-            to_goal = goal - (x, y)
-        err = float(wrap_angle(math.atan2(to_goal[1], to_goal[0]) - th))
-        w = float(np.clip(2.0 * err, -cfg.turn_rate, cfg.turn_rate))
-        v = 0.0 if abs(err) > turn_lim else cfg.speed * math.cos(err) * min(1.0, float(np.hypot(*to_goal)) / 0.3 + 0.3)
+        v, w = planner.command(fine[i - 1], dt)
+        if planner.stuck:
+            x, y = fine[i - 1, 0], fine[i - 1, 1]
+            raise LinoLocError(f"drive: stuck at ({x:.2f}, {y:.2f}) in world '{world.name}': no reachable goal")
         # true wheel travels of this tick and the exact differential-drive motion
         ds, dth = v * dt, w * dt
         d_l, d_r = ds - 0.5 * b_true * dth, ds + 0.5 * b_true * dth
         fine[i] = _arc(fine[i - 1], ds, dth)
         # measured wheel travels -> odometry pose
-        ml = d_l * (1.0 + bias_l) + (nz.slip_k * math.sqrt(abs(d_l)) * rng.standard_normal() if nz.slip_k else 0.0)
-        mr = d_r * (1.0 + bias_r) + (nz.slip_k * math.sqrt(abs(d_r)) * rng.standard_normal() if nz.slip_k else 0.0)
+        ml, mr = encoders.measure(d_l, d_r)
         odo[i] = _arc(odo[i - 1], 0.5 * (ml + mr), (mr - ml) / b_odo)
     step = max(1, int(round(cfg.odom_rate / cfg.camera_rate)))
     idx = np.arange(0, n_fine, step)
@@ -208,7 +282,7 @@ def plan_drive(
         truth=fine[idx].copy(),
         odometry=odo[idx].copy(),
         fine_truth=fine,
-        wheel_bias=(bias_l, bias_r),
+        wheel_bias=(encoders.bias_l, encoders.bias_r),
     )
 
 
