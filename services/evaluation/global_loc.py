@@ -18,8 +18,8 @@ mapped area and all headings and gets one (odometry increment, image) pair per u
 - heading error (degrees, median) and the fraction of runs whose filter state is
   ``tracking``.
 
-The camera here does not move (the active choice of pan angles is issue 6), so the views
-change only because the robot drives.
+The camera here does not move (the active choice of pan angles is :mod:`services.evaluation.active`),
+so the views change only because the robot drives.
 """
 
 from __future__ import annotations

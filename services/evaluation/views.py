@@ -129,7 +129,7 @@ def render_vectors(
 
 
 # --------------------------------------------------------------------------- grey images
-# (added for the localization evaluations, issue 3: the Localizer takes the camera's image)
+# (the Localizer takes the camera's grey image)
 
 
 def _render_grey_chunk(args: tuple[int, np.ndarray]) -> np.ndarray:
