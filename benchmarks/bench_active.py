@@ -2,7 +2,7 @@
 
     python benchmarks/bench_active.py [--repeats 30]
 
-Prints one JSON object (see services/commands/bench_active.py, the same measurement as
+Prints one JSON object (see services/evaluation/action_cost.py, the same measurement as
 ``lino-loc bench active --json``): median wall-clock and process-CPU milliseconds per
 evaluation for 50 / 150 / 500 particles (22 actions) and 11 / 22 / 44 actions (150
 particles) on the office grid map, single-threaded, and the machine (platform, cpu count,
@@ -23,7 +23,7 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.commands.bench_active import run_active_bench  # noqa: E402
+from services.evaluation.action_cost import run_active_bench  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -58,7 +58,7 @@ from lino_loc.disparity import compute_disparity, downsample_sparse  # noqa: E40
 from lino_loc.fusion import fuse  # noqa: E402
 from lino_loc.localizer import Localizer, LocalizerConfig  # noqa: E402
 from lino_loc.pca_missing import fit_pca_missing  # noqa: E402
-from services.evaluation.sensor_model_eval import (  # noqa: E402
+from services.evaluation.sensor_model_error import (  # noqa: E402
     SensorModelSetup,
     default_path_box,
     disparity_map,

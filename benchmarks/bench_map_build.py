@@ -1,4 +1,4 @@
-"""Benchmark: PCA methods and the appearance-map build (issue 2, "map build for the lab survey").
+"""Benchmark: PCA methods and the appearance-map build (the lab survey's map build).
 
 Prints one JSON object. Every figure is the median of repeated runs; each measurement runs
 in a fresh child process so that its peak resident memory (``ru_maxrss``) is its own.

@@ -4,7 +4,7 @@ APF update) on the lab map, for 150 / 1000 / 10000 particles, and its growth wit
     python benchmarks/bench_update.py [--repeats 300] [--preprocess none|histeq|gradient]
 
 Prints one JSON object, the same as ``lino-loc bench update --json`` (see
-services/commands/bench.py for what is measured): ``update_ms`` {particles: {median, p99, min,
+services/evaluation/update_cost.py for what is measured): ``update_ms`` {particles: {median, p99, min,
 cpu_median}}, ``map_scaling`` {entries: {...}}, ``machine`` (platform, cpu, cpu_count,
 load_average). Numeric libraries are limited to one thread before numpy is imported.
 """
@@ -23,7 +23,7 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.commands.bench import run_update_bench  # noqa: E402
+from services.evaluation.update_cost import run_update_bench  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,4 @@
-"""`lino-loc`: the one console script (design.md section 4.1, a contract).
+"""`lino-loc`: the one console script.
 
 Each command group lives in its own module under ``services.commands`` and exposes
 ``register(subparsers)``, which adds its sub-parser(s) and sets ``func`` on them. ``func``
@@ -18,8 +18,8 @@ import os
 import sys
 from collections.abc import Sequence
 
-# One BLAS/OpenMP thread, set before numpy loads: the products here are small, and threaded
-# BLAS made them 4-20x slower on the 2-core machines measured (docs/architecture.md).
+# One BLAS/OpenMP thread, set before numpy loads: the products here are small and a threaded
+# BLAS costs more than it gains on a small robot computer (docs/results.md).
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
@@ -27,11 +27,11 @@ from lino_loc.errors import LinoLocError  # noqa: E402
 
 # Order here is the order in `lino-loc --help`.
 COMMAND_MODULES: tuple[str, ...] = (
-    "services.commands.survey",
+    "services.commands.survey_cmd",
     "services.commands.map",
-    "services.commands.eval",
-    "services.commands.dataset",
-    "services.commands.bench",
+    "services.evaluation.commands.eval_cmd",
+    "services.commands.dataset_cmd",
+    "services.evaluation.commands.bench_cmd",
     "services.commands.config_cmd",
     "services.commands.echo",
     "services.commands.run",

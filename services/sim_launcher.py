@@ -274,8 +274,8 @@ def sidecar_path(map_path: Path) -> Path:
 
 def _code_fingerprint() -> str:
     """The code that renders the survey and builds the map (a cached map from other code is
-    rebuilt): :func:`services.evaluation.views.code_fingerprint`."""
-    from services.evaluation.views import code_fingerprint
+    rebuilt): :func:`drivers.sim.code_fingerprint.code_fingerprint`."""
+    from drivers.sim.code_fingerprint import code_fingerprint
 
     return code_fingerprint()
 

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from services.evaluation.active import ActiveSetup
 from services.evaluation.active_bounds import map_oracle_success, sweep_order, views_by_position
+from services.evaluation.active_setup import ActiveSetup, paper_active_vision
 
 N_HEAD = 24  # 15 deg headings
 
@@ -48,8 +48,8 @@ def test_oracle_finds_the_position_whose_views_are_seen() -> None:
     rng = np.random.default_rng(1)
     xy = np.array([[0.0, 0.0], [0.75, 0.0], [1.5, 0.0], [0.0, 0.75]])
     entries, feats = _map(rng, xy)
-    setup = ActiveSetup(runs=3, n_actions=22)
-    pans = setup.active_config().actions()
+    setup = ActiveSetup(runs=3, active=paper_active_vision(n_actions=22))
+    pans = setup.active.actions()
     # test positions 20 cm from map positions 0 and 2; their views are those stored at
     # positions 0 and 2 (headings 30 and -60 deg), plus a little noise
     truths = np.array([[0.2, 0.0, math.radians(30.0)], [1.5, 0.2, math.radians(-60.0)]])
@@ -73,8 +73,8 @@ def test_oracle_needs_more_views_when_positions_look_alike() -> None:
     entries, feats = _map(rng, xy)
     feats[N_HEAD:] = feats[:N_HEAD]
     feats[N_HEAD + 6] += 3.0  # position 1 differs only when looking at 90 deg
-    setup = ActiveSetup(runs=10, n_actions=22)
-    pans = setup.active_config().actions()
+    setup = ActiveSetup(runs=10, active=paper_active_vision(n_actions=22))
+    pans = setup.active.actions()
     truths = np.array([[0.7, 0.0, 0.0]])
     views = _views(entries, feats, xy[1], 0.0, pans)[None]
     res = map_oracle_success(setup, entries, entries, feats, truths, pans, views)

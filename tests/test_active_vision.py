@@ -270,7 +270,7 @@ def test_policy_stays_when_the_best_action_is_the_present_pan() -> None:
 
 
 def test_bench_reports_the_cost_table() -> None:
-    from services.commands.bench_active import run_active_bench
+    from services.evaluation.action_cost import run_active_bench
 
     res = run_active_bench(repeats=1, particles=(50,), actions=(11,))
     assert set(res["particles"]) == {"50"} and set(res["actions"]) == {"11"}

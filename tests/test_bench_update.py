@@ -7,9 +7,10 @@ import argparse
 import numpy as np
 import pytest
 
+from drivers.sim.drive import DriveConfig, plan_drive
 from drivers.sim.world import load_world
-from services.commands import bench
-from services.evaluation.drive import DriveConfig, plan_drive
+from services.evaluation import machine, update_cost
+from services.evaluation.commands import bench_cmd
 from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
 
 
@@ -25,7 +26,7 @@ def tiny():
 def test_bench_json_has_the_keys(tiny) -> None:
     amap, frames = tiny
     n = len(amap)
-    res = bench.run_update_bench(repeats=6, particles=(50, 200), map_sizes=(n // 2, 4 * n), amap=amap, frames=frames)
+    res = update_cost.run_update_bench(repeats=6, particles=(50, 200), map_sizes=(n // 2, 4 * n), amap=amap, frames=frames)
     assert set(res["update_ms"]) == {"50", "200"}
     for r in res["update_ms"].values():
         assert 0.0 < r["min"] <= r["median"] <= r["p99"]
@@ -43,24 +44,24 @@ def test_bench_json_has_the_keys(tiny) -> None:
 def test_resized_map_keeps_features_consistent(tiny) -> None:
     amap, _ = tiny
     rng = np.random.default_rng(0)
-    sub, syn = bench._resized_map(amap, 10, rng)
+    sub, syn = update_cost._resized_map(amap, 10, rng)
     assert not syn and len(sub) == 10 and sub.channels["intensity"].features.shape == (10, 4)
-    big, syn = bench._resized_map(amap, 3 * len(amap) + 1, rng)
+    big, syn = update_cost._resized_map(amap, 3 * len(amap) + 1, rng)
     assert syn and big.poses.shape == (3 * len(amap) + 1, 3)
     assert big.channels["intensity"].features.shape[0] == big.poses.shape[0]
 
 
 def test_bench_group_registers_update_and_is_extensible() -> None:
-    assert isinstance(bench.BENCH_MODULES, tuple)
+    assert isinstance(bench_cmd.BENCH_MODULES, tuple)
     parser = argparse.ArgumentParser()
-    bench.register(parser.add_subparsers(dest="command"))
+    bench_cmd.register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["bench", "update", "--json", "--repeats", "7"])
-    assert args.repeats == 7 and args.json and args.func is bench._update
+    assert args.repeats == 7 and args.json and args.func is bench_cmd._update
 
 
 def test_single_threaded_needs_every_variable(monkeypatch) -> None:
-    for v in bench.THREAD_VARS:
+    for v in machine.THREAD_VARS:
         monkeypatch.setenv(v, "1")
-    assert bench.single_threaded()
+    assert machine.single_threaded()
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
-    assert not bench.single_threaded()
+    assert not machine.single_threaded()

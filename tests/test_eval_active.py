@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from services.cli import main
-from services.evaluation.active import ActiveSetup, place_test_positions
+from services.evaluation.active import place_test_positions
+from services.evaluation.active_setup import ActiveSetup
 
 TINY = ["--step", "2.0", "--heading-step", "45", "--positions", "2", "--runs", "2", "--movements", "2",
         "--actions", "4", "--particles", "60", "--workers", "1"]
@@ -92,3 +93,19 @@ def test_bad_arguments_exit_2(bad: list[str], capsys: pytest.CaptureFixture[str]
     assert main(["eval", "active", *TINY, *bad]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and err.strip()
+
+
+def test_setup_report_is_the_flat_setup_of_the_result() -> None:
+    """The result's ``setup`` object keeps its keys, order and values: the sensor-model and
+    action-evaluation settings the setup composes are inlined."""
+    expected = {
+        "world": "office", "lighting": "tube", "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 5,
+        "virtual_step_deg": 3.0, "features": 5, "preprocess": "none", "j": 10, "sigma_xy": 0.35,
+        "sigma_theta": 0.3, "outlier_weight": 0.01, "particles": 150, "eval_particles": 150, "roughen_xy": 0.0,
+        "roughen_theta": 0.0, "inject": 0.0, "n_actions": 22, "predicted_neighbours": "all", "pan_min": -2.6,
+        "pan_max": 2.6, "positions": 20, "runs": 10, "movements": 10, "scene_changes": [],
+        "min_grid_distance": 0.15, "sweep_stride": 7, "width": 320, "height": 240, "size": [80, 60], "seed": 0,
+        "strategies": ["entropy", "random", "sweep"], "filter": {}, "motion": {},
+    }
+    report = ActiveSetup().report()
+    assert report == expected and list(report) == list(expected)

@@ -1,5 +1,5 @@
 """The simulated robot in-process: the real head and odometry adapters against its emulators,
-the camera frames over ZeroMQ, the truth stream, free space and the wander plan."""
+the camera frames over ZeroMQ, the truth stream, free space and the drive planner."""
 
 from __future__ import annotations
 
@@ -14,8 +14,10 @@ from drivers.dynamixel_head import DynamixelHead, HeadConfig
 from drivers.interfaces import HealthState
 from drivers.serial_odometry import OdometryConfig, SerialOdometry
 from drivers.sim.camera import SimStereoCamera
+from drivers.sim.drive import DrivePlanner, PlannerConfig
+from drivers.sim.free_space import FreeSpace
 from drivers.sim.robot import SimRobot, SimRobotConfig, TruthSample, base_step, integrate
-from drivers.sim.wander import FreeSpace, WanderPlan
+from drivers.sim.wheel_noise import WheelOdometryNoise
 from drivers.sim.world import load_world
 from lino_loc.errors import LinoLocError
 from lino_loc.poses import between, compose, wrap_angle
@@ -76,8 +78,7 @@ def driving(world):
         ticks_per_rev=2000,
         track_width=0.36,
         left_sign=-1,  # a non-default base
-        wheel_scale_std=0.0,  # exact encoders: this checks the adapter's integration, not slip
-        wheel_slip_k=0.0,
+        odometry_noise=WheelOdometryNoise.exact(),  # this checks the adapter's integration, not slip
     )
     robot = SimRobot(cfg, world=world, on_truth=truths)
     robot.truths = truths  # type: ignore[attr-defined]
@@ -227,7 +228,8 @@ def test_base_never_leaves_free_space_even_when_pushed_into_a_wall(world, free) 
 
 
 def _simulate(world, free, seed: int, steps: int = 1500) -> np.ndarray:
-    plan = WanderPlan(world, free, speed=0.4, seed=seed)
+    cfg = SimRobotConfig(speed=0.4, robot_radius=RADIUS).planner_config()
+    plan = DrivePlanner(world, cfg, np.random.default_rng(seed))
     pose = (4.0, 1.25, 0.0)
     out = np.empty((steps, 3))
     for k in range(steps):
@@ -236,7 +238,7 @@ def _simulate(world, free, seed: int, steps: int = 1500) -> np.ndarray:
     return out
 
 
-def test_wander_plan_is_deterministic_smooth_and_free(world, free) -> None:
+def test_drive_planner_is_deterministic_smooth_and_free(world, free) -> None:
     a = _simulate(world, free, seed=1)
     b = _simulate(world, free, seed=1)
     c = _simulate(world, free, seed=2)
@@ -267,3 +269,14 @@ def test_free_space_raster_is_conservative(world, free) -> None:
 def test_start_in_an_obstacle_is_a_user_error(world) -> None:
     with pytest.raises(LinoLocError, match="not free"):
         SimRobot(SimRobotConfig(start=(-5.0, 0.0, 0.0)), world=world)
+
+
+def test_sim_robot_drives_with_the_shared_planner_and_wheel_noise_model() -> None:
+    c = SimRobotConfig(speed=0.2, turn_rate=0.5, robot_radius=0.3)
+    p = c.planner_config()
+    assert isinstance(p, PlannerConfig)
+    assert (p.speed, p.turn_rate) == (0.2, 0.5) and p.clearance == pytest.approx(0.41)
+    assert p.accel is not None and p.angular_accel is not None  # the simulated base accelerates smoothly
+    model = WheelOdometryNoise()
+    assert c.odometry_noise.slip_k == model.slip_k and c.odometry_noise.scale_bias_std == model.scale_bias_std
+    assert c.odometry_noise.wheel_base_error == 0.0  # the emulated board's track width is the daemon's

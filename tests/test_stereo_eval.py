@@ -13,7 +13,7 @@ import pytest
 
 from lino_loc.errors import LinoLocError
 from lino_loc.stereo_metrics import load_disparity_truth, stereo_metrics
-from services.commands.stereo_eval import register_eval, run_stereo
+from services.evaluation.commands.stereo_cmd import register_eval, run_stereo
 
 MIDDLEBURY = (
     Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "middlebury_motorcycle"

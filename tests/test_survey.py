@@ -16,7 +16,7 @@ from drivers.sim.survey import condition_name, run_survey, survey_poses
 from drivers.sim.world import World, WorldSpec
 from lino_loc.dataset import Dataset
 from lino_loc.errors import LinoLocError
-from services.commands import survey as survey_cmd
+from services.commands import survey_cmd
 
 
 def _world(with_crate: bool = True) -> World:

@@ -4,9 +4,11 @@
 robot, so that the daemon's real drivers are what runs against it:
 
 - **base** (thread ``sim-base``, ``rate_hz`` = 50 Hz): a differential drive following a
-  :class:`drivers.sim.wander.WanderPlan` (or standing still). Each tick k at nominal time
-  t_k = t_0 + k dt takes (v, omega) from the plan for the interval [t_k, t_k+1), sets the
-  wheel speeds ``v -/+ omega b / 2`` (b = track width) on the odometry board emulator and
+  :class:`drivers.sim.drive.DrivePlanner` (or standing still; its settings:
+  :meth:`SimRobotConfig.planner_config`). Each tick k at nominal time t_k = t_0 + k dt takes
+  (v, omega) from the planner for the interval [t_k, t_k+1), sets the wheel speeds the
+  encoders measure (:mod:`drivers.sim.wheel_noise` applied to the true wheel travels
+  ``(v -/+ omega b / 2) dt``, b = the true track width) on the odometry board emulator and
   integrates the pose along the exact arc. A step whose end pose is not free (conservative
   raster of :meth:`World.is_free` for ``robot_radius``) is replaced by a turn in place and the
   plan picks another goal: the robot never enters a wall or a piece of furniture. The fixed
@@ -54,11 +56,13 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from drivers.interfaces import CameraIntrinsics
 from drivers.odometry_protocol import arc_step
+from drivers.sim.drive import DrivePlanner, PlannerConfig
 from drivers.sim.dynamixel_emulator import DynamixelBusEmulator
 from drivers.sim.frame_transport import encode_frame
+from drivers.sim.free_space import FreeSpace
 from drivers.sim.odometry_emulator import OdometryBoardEmulator
 from drivers.sim.renderer import CameraModel, Renderer
-from drivers.sim.wander import FreeSpace, WanderPlan
+from drivers.sim.wheel_noise import WheelOdometryNoise
 from drivers.sim.world import World, load_world
 from lino_loc.errors import LinoLocError
 
@@ -66,6 +70,12 @@ log = logging.getLogger("lino_loc.drivers.sim_robot")
 
 #: Tilt angles are rendered on this grid (radians): the renderer caches its rays per tilt.
 TILT_QUANTUM = 0.01
+
+#: The simulated base's planner settings other than speed, turn rate and clearance: bounded
+#: accelerations (m/s^2, rad/s^2) and an occasional pause at a goal, like a robot doing errands.
+SIM_PLANNER = PlannerConfig(accel=0.5, angular_accel=2.0, pause_probability=0.3, max_pause_s=2.0)
+#: Clearance of the planner's goal segments beyond the robot's radius, m.
+GOAL_CLEARANCE = 0.11
 
 
 class SimRobotConfig(BaseModel):
@@ -85,7 +95,7 @@ class SimRobotConfig(BaseModel):
     seed: int = 0
     drive: bool = True
     speed: float = Field(0.3, ge=0.0, le=2.0, description="maximum linear speed, m/s")
-    max_omega: float = Field(0.8, gt=0.0, le=6.0, description="maximum turn rate, rad/s")
+    turn_rate: float = Field(0.8, gt=0.0, le=6.0, description="maximum turn rate, rad/s")
     start: tuple[float, float, float] | None = Field(
         None, description="initial pose; None: centre of the mapped area"
     )
@@ -96,11 +106,10 @@ class SimRobotConfig(BaseModel):
     track_width: float = Field(0.30, gt=0.0)
     left_sign: int = 1
     right_sign: int = 1
-    wheel_scale_std: float = Field(
-        0.003, ge=0.0, description="std of each wheel's scale error (tyre wear, load), drawn per run"
-    )
-    wheel_slip_k: float = Field(
-        0.005, ge=0.0, description="random slip, m^(1/2): per tick std = k sqrt(|distance rolled|)"
+    odometry_noise: WheelOdometryNoise = Field(
+        default_factory=lambda: WheelOdometryNoise(wheel_base_error=0.0),
+        description="what the encoders report of the true wheel travels; its wheel_base_error makes "
+        "the true track width track_width / (1 + e), track_width staying the daemon's",
     )
     odometry_rate_hz: float = Field(50.0, gt=0.0)
     pan_id: int = Field(1, ge=0, le=252)
@@ -113,6 +122,13 @@ class SimRobotConfig(BaseModel):
     camera_sndhwm: int = Field(
         2, ge=1, description="frames queued per slow subscriber, then dropped"
     )
+
+    def planner_config(self) -> PlannerConfig:
+        """:data:`SIM_PLANNER` with this robot's speed, turn rate and goal clearance."""
+        return SIM_PLANNER.model_copy(
+            update={"speed": self.speed, "turn_rate": self.turn_rate,
+                    "clearance": self.robot_radius + GOAL_CLEARANCE}
+        )
 
     @field_validator("left_sign", "right_sign")
     @classmethod
@@ -225,7 +241,7 @@ class SimRobot:
             math.atan2(math.sin(start[2]), math.cos(start[2])),
         )
         self.plan = (
-            WanderPlan(self.world, self.free, speed=c.speed, max_omega=c.max_omega, seed=c.seed)
+            DrivePlanner(self.world, c.planner_config(), np.random.default_rng(c.seed), self.scene_changes)
             if c.drive
             else None
         )
@@ -356,7 +372,7 @@ class SimRobot:
             "sim robot: world %s, lighting %s, changes [%s], start (%.2f, %.2f, %.2f), %s; head %s, "
             "odometry %s, camera %s (%dx%d @ %g fps)",
             self.world.name, c.lighting, ",".join(self.scene_changes), *self._start_pose,
-            f"wander at {c.speed:g} m/s (seed {c.seed})" if c.drive else "standing still",
+            f"driving at up to {c.speed:g} m/s (seed {c.seed})" if c.drive else "standing still",
             self.head_port, self.odometry_port, self.camera_endpoint, c.width, c.height, c.fps,
         )  # fmt: skip
         return self
@@ -420,16 +436,10 @@ class SimRobot:
         pose = self._start_pose
         k = 0
         t0 = m0
-        half_b = 0.5 * c.track_width
-        # What the encoders see is not exactly what the base did: a scale error per wheel for
-        # the whole run and random slip per tick (seeded: the same run for the same seed).
-        odo_rng = np.random.default_rng((c.seed, 17))
-        bias_l, bias_r = odo_rng.normal(0.0, c.wheel_scale_std, 2) if c.wheel_scale_std else (0.0, 0.0)
-
-        def measured(speed: float, bias: float) -> float:
-            rolled = abs(speed) * dt
-            slip = c.wheel_slip_k * math.sqrt(rolled) * odo_rng.standard_normal() if c.wheel_slip_k and rolled else 0.0
-            return speed * (1.0 + bias) + slip / dt
+        # the true track; the daemon integrates with track_width (the wheel-base error)
+        half_b = 0.5 * c.track_width / (1.0 + c.odometry_noise.wheel_base_error)
+        # what the encoders see is not exactly what the base did (seeded: the same run per seed)
+        encoders = c.odometry_noise.start(np.random.default_rng((c.seed, 17)))
 
         try:
             while not self._stop.is_set():
@@ -457,10 +467,8 @@ class SimRobot:
                 if blocked:
                     with self._stats_lock:
                         self._blocked += 1
-                vl, vr = v - omega * half_b, v + omega * half_b
-                self.odometry.set_wheel_speeds(
-                    c.left_sign * measured(vl, bias_l), c.right_sign * measured(vr, bias_r)
-                )
+                ml, mr = encoders.measure((v - omega * half_b) * dt, (v + omega * half_b) * dt)
+                self.odometry.set_wheel_speeds(c.left_sign * ml / dt, c.right_sign * mr / dt)
                 state = _BaseState(stamp, pose, v, omega)
                 with self._cond:
                     self._history.append(state)

@@ -1,4 +1,4 @@
-"""`lino-loc map build` and `lino-loc map info`: appearance maps (design.md 4.3, eq. 1).
+"""`lino-loc map build` and `lino-loc map info`: appearance maps (eq. 1).
 
     lino-loc map build DATASET --out MAP [--features 20] [--preprocess none|histeq|gradient]
                        [--size 80x60] [--condition tube] [--method randomized|gram|svd]
@@ -144,7 +144,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     msub.required = True
 
     p = msub.add_parser("build", help="build an appearance map file from a dataset folder")
-    p.add_argument("dataset", help="dataset folder (design.md 4.2)")
+    p.add_argument("dataset", help="dataset folder (made by lino-loc survey or lino-loc dataset import)")
     p.add_argument("--out", required=True, help="map file to write (.npz)")
     p.add_argument("--features", type=int, default=DEFAULT_FEATURES, help="PCA features per image (default %(default)s)")
     p.add_argument("--preprocess", choices=PREPROCESS_METHODS, default="none", help="image preprocessing (default %(default)s)")

@@ -38,89 +38,26 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from drivers.sim.world import World, grid_poses, load_world
-from lino_loc.active_vision import ActionEvaluator, ActiveVisionConfig, belief_entropy
+from lino_loc.active_vision import ActionEvaluator, belief_entropy
 from lino_loc.appearance_map import channel_margin
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
-from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
-from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
+from lino_loc.motion_model import OdometryMotionModel
+from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
-from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
+from lino_loc.sensor_model import NearestNeighbourSensorModel
 from lino_loc.virtual_views import crop_columns
 from services.evaluation.active_bounds import feature_diagnostics, ideal_success, map_oracle_success
+from services.evaluation.active_setup import ActiveSetup
 from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
 
 log = logging.getLogger(__name__)
 
-STRATEGIES: tuple[str, ...] = ("entropy", "random", "sweep")
 ProgressFn = Callable[[str, int, int], None]
-
-
-@dataclass(frozen=True)
-class ActiveSetup:
-    """Parameters of the experiment (defaults: the paper's section 6.1)."""
-
-    world: str = "office"
-    lighting: str = "tube"
-    step: float = 0.75
-    heading_step_deg: float = 15.0
-    virtual_headings: int = 5
-    virtual_step_deg: float = 3.0
-    features: int = 5
-    preprocess: str = "none"
-    j: int = 10
-    sigma_xy: float = 0.35
-    sigma_theta: float = 0.3
-    outlier_weight: float = 0.01
-    particles: int = 150
-    eval_particles: int = 150
-    roughen_xy: float = 0.0
-    roughen_theta: float = 0.0
-    inject: float = 0.0
-    n_actions: int = 22
-    predicted_neighbours: str = "all"
-    pan_min: float = -2.6
-    pan_max: float = 2.6
-    positions: int = 20
-    runs: int = 10
-    movements: int = 10
-    scene_changes: tuple[str, ...] = ()
-    min_grid_distance: float = 0.15
-    sweep_stride: int = 7
-    width: int = 320
-    height: int = 240
-    size: tuple[int, int] = (80, 60)
-    seed: int = 0
-    workers: int | None = None
-    strategies: tuple[str, ...] = STRATEGIES
-    snapshots: bool = True
-    ideal: bool = False
-    filter: dict[str, Any] = field(default_factory=dict)
-    motion: dict[str, Any] = field(default_factory=dict)
-
-    def sensor_config(self) -> SensorModelConfig:
-        return SensorModelConfig(j=self.j, sigma_xy=self.sigma_xy, sigma_theta=self.sigma_theta,
-                                 outlier_weight=self.outlier_weight)
-
-    def active_config(self) -> ActiveVisionConfig:
-        return ActiveVisionConfig(
-            n_actions=self.n_actions,
-            pan_min=self.pan_min,
-            pan_max=self.pan_max,
-            max_particles=self.eval_particles,
-            predicted_neighbours=self.predicted_neighbours,
-        )
-
-    def filter_config(self) -> FilterConfig:
-        return FilterConfig(n_particles=self.particles, **self.filter)
-
-    def motion_config(self) -> MotionModelConfig:
-        return MotionModelConfig(**self.motion)
 
 
 # --------------------------------------------------------------------------- data
@@ -191,8 +128,8 @@ def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarr
     (the success criteria's training points)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     world = load_world(setup.world)
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
-    _ctx.update(setup=setup, world=world, model=model, evaluator=ActionEvaluator(model, setup.active_config()),
+    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
+    _ctx.update(setup=setup, world=world, model=model, evaluator=ActionEvaluator(model, setup.active),
                 map_poses=map_poses)
 
 
@@ -225,7 +162,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
     world: World = _ctx["world"]
     model: NearestNeighbourSensorModel = _ctx["model"]
     ev: ActionEvaluator = _ctx["evaluator"]
-    pans = setup.active_config().actions()
+    pans = setup.active.actions()
     n_a = pans.size
     step, hstep = setup.step, math.radians(setup.heading_step_deg)
 
@@ -370,7 +307,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     world = load_world(setup.world)
     changes = world.check_changes(setup.scene_changes)
     grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
-    pans = setup.active_config().actions()
+    pans = setup.active.actions()
     pca, map_features, entries, margin = render_map(setup, progress)
     truths = place_test_positions(world, setup, grid)
     conditions: list[tuple[str, tuple[str, ...]]] = [("none", ())]
@@ -402,8 +339,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
         "runs": int(setup.runs),
         "strategies": base,
         "movements": int(setup.movements),
-        "setup": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(setup).items()
-                  if k not in ("workers", "snapshots", "ideal")},
+        "setup": setup.report(),
         "map_images": int(grid.shape[0]),
         "map_entries": int(entries.shape[0]),
         "test_poses": [[float(v) for v in t] for t in truths],
@@ -424,10 +360,9 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
 def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[str]:
     """Fig. 3 (error and success against movements, all strategies, std bands) per scene
     condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
-    import matplotlib
+    from services.evaluation.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     os.makedirs(out_dir, exist_ok=True)
     files: list[str] = []

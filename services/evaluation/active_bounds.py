@@ -17,16 +17,13 @@ All three see the same rendered test views as the filter.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lino_loc.metrics import nearest_map_index, success, success_pose
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel
-
-if TYPE_CHECKING:
-    from services.evaluation.active import ActiveSetup
+from services.evaluation.active_setup import ActiveSetup
 
 
 def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
@@ -36,7 +33,7 @@ def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarra
     truth map cell (nearest grid pose to the camera pose, grid units) is the nearest map entry in
     feature space, and is among the J nearest; the fraction of the J neighbours within one
     grid step (position and heading) of the camera pose."""
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
+    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
     cams = np.repeat(truths[:, None, :], pans.size, axis=1)
     cams[:, :, 2] = wrap_angle(cams[:, :, 2] + pans[None, :])
     cams = cams.reshape(-1, 3)
@@ -58,7 +55,7 @@ def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map
     """Upper bound of the sensor model, without particles: the posterior of the first k images
     (first pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped
     area + 30 cm), its maximum as the estimate; success ratio over the test positions."""
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor_config())
+    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
     xmin, xmax = grid[:, 0].min() - 0.3, grid[:, 0].max() + 0.3
     ymin, ymax = grid[:, 1].min() - 0.3, grid[:, 1].max() + 0.3
     gx, gy, gh = np.meshgrid(np.arange(xmin, xmax + 1e-9, 0.1), np.arange(ymin, ymax + 1e-9, 0.1),

@@ -4,7 +4,7 @@ against the number of updates, from a uniform initial belief.
 Setting (section 6.1): the office world (800 x 250 cm mapped area), a map every 75 cm and
 15 deg rendered under the mapping light (``tube``), 5 PCA features, J = 10. For each of
 ``starts`` runs the robot starts at a random free pose (off the map grid) and drives along a
-drive plan (:mod:`services.evaluation.drive`, with odometry noise) with the camera fixed
+drive plan (:mod:`drivers.sim.drive`, with odometry noise) with the camera fixed
 (pan 0); the :class:`lino_loc.localizer.Localizer` starts from the uniform belief over the
 mapped area and all headings and gets one (odometry increment, image) pair per update at
 ``rate`` Hz. After every update the estimate is compared with the truth:
@@ -18,8 +18,8 @@ mapped area and all headings and gets one (odometry increment, image) pair per u
 - heading error (degrees, median) and the fraction of runs whose filter state is
   ``tracking``.
 
-The camera here does not move (the active choice of pan angles is issue 6), so the views
-change only because the robot drives.
+The camera here does not move (the active choice of pan angles is :mod:`services.evaluation.active`),
+so the views change only because the robot drives.
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ from typing import Any
 
 import numpy as np
 
+from drivers.sim.drive import DriveConfig, plan_drive
 from drivers.sim.world import grid_poses, load_world
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import heading_errors, position_errors, success, success_pose
-from services.evaluation.drive import DriveConfig, plan_drive
 from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""How often does ONE image tell where the robot is? (issue 2: single-image ambiguity)
+"""How often does ONE image tell where the robot is? (single-image ambiguity)
 
 The office map of section 6.1 (every 75 cm and 15 deg, 5 PCA features, mapping light) and
 test views rendered at random free poses OFF the map grid, under the mapping light. Each test

@@ -4,7 +4,7 @@
 Setting: the lab world, a map every 50 cm and 10 deg (the lab survey grid of section 6.2,
 ~4500 views) rendered under the mapping light ``tube`` with no scene changes; ``features``
 PCA features of the preprocessed images (``none`` / ``histeq`` / ``gradient``). The robot
-drives for ``duration`` seconds along a drive plan (:mod:`services.evaluation.drive`: a
+drives for ``duration`` seconds along a drive plan (:mod:`drivers.sim.drive`: a
 smooth path through the free space of the CHANGED scene, wheel odometry with slip, per-wheel
 scale errors and a wrong wheel base), the camera fixed (pan 0), one update per camera frame
 at ``rate`` Hz. The same drive is rendered under each light of ``lights`` (``tube`` is the
@@ -49,10 +49,10 @@ from typing import Any
 
 import numpy as np
 
+from drivers.sim.drive import DriveConfig, DrivePlan, plan_drive
 from drivers.sim.world import load_world
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
-from services.evaluation.drive import DriveConfig, DrivePlan, plan_drive
 from services.evaluation.global_loc import localizer_config
 from services.evaluation.trajectories import trajectory_names, write_tum
 from services.evaluation.views import ViewSpec, build_sim_maps, render_grey

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from drivers.sim.code_fingerprint import code_fingerprint
 from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.world import grid_poses, load_world
 from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
@@ -128,7 +129,7 @@ def render_vectors(
 
 
 # --------------------------------------------------------------------------- grey images
-# (added for the localization evaluations, issue 3: the Localizer takes the camera's image)
+# (the Localizer takes the camera's grey image)
 
 
 def _render_grey_chunk(args: tuple[int, np.ndarray]) -> np.ndarray:
@@ -165,28 +166,6 @@ def map_cache_dir() -> Path:
     """Where rendered survey maps are cached (``$LINO_LOC_CACHE`` or ~/.cache/lino-loc)/maps."""
     root = os.environ.get("LINO_LOC_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "lino-loc")
     return Path(root) / "maps"
-
-
-#: Modules whose code decides a rendered view and the map built from it: a cached view or map
-#: made by other code is stale (``code_fingerprint`` is part of every cache key).
-_CACHE_CODE = (
-    "drivers.sim.renderer", "drivers.sim.lighting", "drivers.sim.textures", "drivers.sim.world",
-    "lino_loc.preprocessing", "lino_loc.disparity", "lino_loc.pca", "lino_loc.pca_missing",
-    "lino_loc.virtual_views", "lino_loc.appearance_map",
-)
-
-
-def code_fingerprint() -> str:
-    """First 8 hex digits of the SHA-256 of the source of the modules in ``_CACHE_CODE``."""
-    import hashlib
-    import importlib
-
-    h = hashlib.sha256()
-    for name in _CACHE_CODE:
-        source = importlib.import_module(name).__file__
-        if source is not None:
-            h.update(Path(source).read_bytes())
-    return h.hexdigest()[:8]
 
 
 def build_sim_maps(

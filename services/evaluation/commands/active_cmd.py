@@ -8,7 +8,14 @@ import logging
 import math
 
 from lino_loc.errors import LinoLocError
-from services.evaluation.active import STRATEGIES, ActiveSetup, plot, run
+from services.evaluation.active import plot, run
+from services.evaluation.active_setup import (
+    STRATEGIES,
+    ActiveSetup,
+    paper_active_vision,
+    paper_sensor_model,
+)
+from services.evaluation.plotting import pyplot
 from services.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -46,6 +53,8 @@ def _table(result: dict) -> str:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.plot:
+        pyplot()  # fails now, in one line naming the extra, rather than after the run
     changes: tuple[str, ...] = ()
     if args.scene_changes:
         changes = tuple(c.strip() for c in args.scene_changes.split(",") if c.strip())
@@ -59,10 +68,12 @@ def _run(args: argparse.Namespace) -> int:
         if value < 1:
             raise LinoLocError(f"{name} must be at least 1 (got {value})")
     setup = ActiveSetup(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
-                        particles=args.particles, n_actions=args.actions, scene_changes=changes,
-                        seed=args.seed, workers=args.workers, features=args.features, j=args.j,
-                        step=args.step, heading_step_deg=args.heading_step, eval_particles=args.eval_particles,
-                        predicted_neighbours=args.predicted, inject=args.inject,
+                        particles=args.particles, scene_changes=changes,
+                        seed=args.seed, workers=args.workers, features=args.features,
+                        sensor=paper_sensor_model(j=args.j),
+                        active=paper_active_vision(n_actions=args.actions, max_particles=args.eval_particles,
+                                                   predicted_neighbours=args.predicted),
+                        step=args.step, heading_step_deg=args.heading_step, inject=args.inject,
                         ideal=args.ideal, virtual_headings=args.virtual_headings,
                         virtual_step_deg=args.virtual_step, preprocess=args.preprocess,
                         filter={"global_proposal_fraction": args.global_proposal},

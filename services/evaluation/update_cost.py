@@ -1,74 +1,28 @@
-"""`lino-loc bench ...`: speed measurements a user runs on the robot's own computer.
+"""The cost of one full localization update (what ``lino-loc bench update`` reports).
 
-Sub-commands register themselves: ``update`` is defined here; further benchmarks live in the
-modules of :data:`BENCH_MODULES`, each exposing ``register_bench(bench_subparsers)`` (as the
-``eval`` group does with ``EVAL_MODULES``).
+:func:`run_update_bench` times :meth:`lino_loc.localizer.Localizer.update` (preprocess and
+project a 320 x 240 image, the J-nearest search in feature space, the auxiliary-particle-filter
+update with its estimate) on the lab map (the lab survey grid, 50 cm / 10 deg, ~4500 entries,
+rendered once and cached under ~/.cache/lino-loc/maps) for 150, 1000 and 10000 particles, and
+how the cost grows with the map size (400 / 4000 / 40000 entries at 1000 particles; 400 is a
+random subset of the lab map, 40000 the lab map's features with Gaussian perturbations:
+synthetic). The frames are those of a short drive through the lab, fed with their odometry
+increments, the filter started at the true pose (the tracking regime).
 
-``lino-loc bench update [--json] [--repeats N]`` measures one full localization update
-(:meth:`lino_loc.localizer.Localizer.update`: preprocess and project a 320 x 240 image, the
-J-nearest search in feature space, the auxiliary-particle-filter update with its estimate) on
-the lab map (the lab survey grid, 50 cm / 10 deg, ~4500 entries, rendered once and cached
-under ~/.cache/lino-loc/maps) for 150, 1000 and 10000 particles, and how the cost grows with
-the map size (400 / 4000 / 40000 entries at 1000 particles; 400 is a random subset of the
-lab map, 40000 the lab map's features with Gaussian perturbations: synthetic). The frames are
-those of a short drive through the lab, fed with their odometry increments, the filter
-started at the true pose (the tracking regime the robot spends its time in).
-
-Single-threaded: numeric libraries are limited to one thread. Their thread count is fixed
-when numpy is loaded, so when the variables are not already 1 the command re-runs itself
-(``python -m services.commands.bench``) with ``OMP_NUM_THREADS`` etc. set to 1; OpenCV is
-set to one thread too. Times are wall-clock per update (median, p99) plus the median
-process-CPU time, which is the fairer figure on a shared machine (see ``machine``).
+Times are wall-clock per update (median, p99, min) plus the median process-CPU time, which is
+the fairer figure on a shared machine (see :func:`services.evaluation.machine.machine`). The
+caller limits numeric libraries to one thread before numpy is loaded
+(:func:`services.evaluation.machine.single_threaded`); OpenCV is set to one thread here.
 """
 
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import os
-import subprocess
-import sys
 from typing import Any
 
-BENCH_MODULES: tuple[str, ...] = ("services.commands.bench_active",)
+from services.evaluation.machine import machine
 
-THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 PARTICLES = (150, 1000, 10000)
 MAP_SIZES = (400, 4000, 40000)
-
-
-def single_threaded() -> bool:
-    return all(os.environ.get(v) == "1" for v in THREAD_VARS)
-
-
-def machine() -> dict[str, Any]:
-    import platform
-
-    import numpy as np
-
-    try:
-        load = [round(v, 2) for v in os.getloadavg()]
-    except OSError:
-        load = None
-    model = platform.processor()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "platform": platform.platform(),
-        "cpu": model,
-        "cpu_count": os.cpu_count(),
-        "load_average": load,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "threads": {v: os.environ.get(v) for v in THREAD_VARS},
-    }
 
 
 def _percentiles(ts: list[float]) -> dict[str, float]:
@@ -182,8 +136,8 @@ def run_update_bench(
 
         amap = build_sim_maps("lab", 0.5, 10.0, 20, (pre,))[pre]
     if frames is None:
+        from drivers.sim.drive import DriveConfig, plan_drive
         from drivers.sim.world import load_world
-        from services.evaluation.drive import DriveConfig, plan_drive
         from services.evaluation.views import ViewSpec, render_grey
 
         plan = plan_drive(load_world("lab"), DriveConfig(duration=8.0, camera_rate=5.0), seed=3)
@@ -218,58 +172,3 @@ def run_update_bench(
                         "met": bool(result["update_ms"].get("1000", {}).get("median", np.inf) <= 2.0)}
     result["machine"] = machine()
     return result
-
-
-def _update(args: argparse.Namespace) -> int:
-    if not single_threaded() and not args.no_reexec:
-        env = dict(os.environ, **{v: "1" for v in THREAD_VARS})
-        cmd = [sys.executable, "-m", "services.commands.bench", "update", "--repeats", str(args.repeats), "--no-reexec"]
-        if args.json:
-            cmd.append("--json")
-        if args.preprocess:
-            cmd += ["--preprocess", args.preprocess]
-        return subprocess.call(cmd, env=env)
-    res = run_update_bench(repeats=args.repeats, preprocess=args.preprocess)
-    if args.json:
-        print(json.dumps(res))
-        return 0
-    m = res["machine"]
-    print(f"one update on the lab map ({res['map']['entries']} entries, {res['map']['features']} features, "
-          f"{res['image'][0]}x{res['image'][1]} image); {m['cpu']}, {m['cpu_count']} cpus, load {m['load_average']}")
-    for n, r in res["update_ms"].items():
-        print(f"  {n:>6} particles: median {r['median']:.2f} ms  p99 {r['p99']:.2f} ms  (cpu {r['cpu_median']:.2f} ms)")
-    print("map size at 1000 particles:")
-    for r in res["map_scaling"].values():
-        print(f"  {r['entries']:>6} entries{' (synthetic)' if r['synthetic'] else ''}: median {r['median']:.2f} ms  "
-              f"p99 {r['p99']:.2f} ms  search {r['search_median_ms']:.3f} ms ({r['index']})")
-    return 0
-
-
-def _add_update(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("update", help="time one localization update (150/1000/10000 particles, map sizes)")
-    p.add_argument("--repeats", type=int, default=300, help="timed updates per setting (10000 particles: a third)")
-    p.add_argument("--preprocess", default=None, choices=("none", "histeq", "gradient"),
-                   help="map preprocessing (default: the tracking evaluation's)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--no-reexec", action="store_true", help=argparse.SUPPRESS)
-    p.set_defaults(func=_update)
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    parser = sub.add_parser("bench", help="speed measurements (run them on the robot's computer)")
-    bench_sub = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK", parser_class=type(parser))
-    bench_sub.required = True
-    _add_update(bench_sub)
-    for name in BENCH_MODULES:
-        importlib.import_module(name).register_bench(bench_sub)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry of the single-threaded re-run (``python -m services.commands.bench update ...``)."""
-    from services.cli import main as cli_main
-
-    return cli_main(["bench", *(argv if argv is not None else sys.argv[1:])])
-
-
-if __name__ == "__main__":
-    sys.exit(main())

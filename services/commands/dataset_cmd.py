@@ -1,4 +1,4 @@
-"""`lino-loc dataset ...`: import and check dataset folders (design.md section 4.2)."""
+"""`lino-loc dataset ...`: import and check dataset folders (the format: :mod:`lino_loc.dataset`)."""
 
 from __future__ import annotations
 

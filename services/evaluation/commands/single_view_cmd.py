@@ -1,4 +1,4 @@
-"""`lino-loc eval single-view`: how often one image alone localizes the robot (issue 2)."""
+"""`lino-loc eval single-view`: how often one image alone localizes the robot."""
 
 from __future__ import annotations
 

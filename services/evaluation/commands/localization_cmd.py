@@ -1,4 +1,4 @@
-"""`lino-loc eval global | tracking | leave-out`: the localization evaluations of issue 3.
+"""`lino-loc eval global | tracking | leave-out`: the localization evaluations.
 
 - ``global``: global localization in the simulated office, error and success (section 6.1)
   against the number of updates (:mod:`services.evaluation.global_loc`);

@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.sim.code_fingerprint import code_fingerprint
 from drivers.sim.renderer import CameraModel
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.appearance_map import AppearanceMap, ChannelMap
@@ -62,13 +63,7 @@ from lino_loc.poses import wrap_angle
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 from services.evaluation.tracking import DEFAULT_PREPROCESS
-from services.evaluation.views import (
-    ViewSpec,
-    build_sim_maps,
-    code_fingerprint,
-    map_cache_dir,
-    render_vectors,
-)
+from services.evaluation.views import ViewSpec, build_sim_maps, map_cache_dir, render_vectors
 
 log = logging.getLogger(__name__)
 
@@ -478,10 +473,9 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
 def plot(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     """Fig. 5 as a PNG in ``out_dir``: eq. 10 along the path per light (intensity dashed,
     fused dotted) and the mean +- std per light. Returns the files written."""
-    import matplotlib
+    from services.evaluation.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

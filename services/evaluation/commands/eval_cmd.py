@@ -9,12 +9,12 @@ import argparse
 import importlib
 
 EVAL_MODULES: tuple[str, ...] = (
-    "services.commands.illumination_eval",
-    "services.commands.single_view_eval",
-    "services.commands.stereo_eval",
-    "services.commands.active_eval",
-    "services.commands.localization_eval",
-    "services.commands.sensor_model_eval",
+    "services.evaluation.commands.illumination_cmd",
+    "services.evaluation.commands.single_view_cmd",
+    "services.evaluation.commands.stereo_cmd",
+    "services.evaluation.commands.active_cmd",
+    "services.evaluation.commands.localization_cmd",
+    "services.evaluation.commands.sensor_model_cmd",
 )
 
 

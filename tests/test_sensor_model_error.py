@@ -17,7 +17,7 @@ from lino_loc.fusion import FusionConfig
 from lino_loc.metrics import sensor_model_error
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
 from services.cli import main
-from services.evaluation.sensor_model_eval import (
+from services.evaluation.sensor_model_error import (
     SensorModelSetup,
     default_path_box,
     errors_eq10,

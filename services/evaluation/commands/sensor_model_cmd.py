@@ -10,7 +10,8 @@ import logging
 
 from lino_loc.errors import LinoLocError
 from lino_loc.preprocessing import PREPROCESS_METHODS
-from services.evaluation.sensor_model_eval import SensorModelSetup, plot, run
+from services.evaluation.plotting import pyplot
+from services.evaluation.sensor_model_error import SensorModelSetup, plot, run
 from services.evaluation.tracking import DEFAULT_PREPROCESS
 from services.progress import Progress
 
@@ -41,6 +42,8 @@ def _table(result: dict) -> str:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.plot:
+        pyplot()  # fails now, in one line naming the extra, rather than after the run
     if args.j < 2:
         raise LinoLocError(f"--j must be at least 2 (it is split between the two channels), got {args.j}")
     if args.spacing <= 0:

@@ -1,9 +1,8 @@
-"""`lino-loc bench active`: the cost of one action evaluation H(u) (lino_loc.active_vision).
+"""The cost of one action evaluation H(u) (lino_loc.active_vision), as ``lino-loc bench active`` reports it.
 
 Measures :meth:`lino_loc.active_vision.ActionEvaluator.evaluate` against the number of
 particles (50 / 150 / 500, at 22 actions) and of actions (11 / 22 / 44, at 150 particles),
-single-threaded (numeric libraries limited to one thread; like ``bench update`` the command
-re-runs itself with the thread variables set to 1). The map is the office survey's grid (75 cm
+single-threaded (the caller limits numeric libraries to one thread before numpy is loaded). The map is the office survey's grid (75 cm
 and 15 degrees over 800 x 250 cm: 11 x 4 positions x 24 headings = 1056 entries) with
 5 synthetic features that vary smoothly with the pose (the cost does not depend on the
 features' values, only on N, J and the grid structure); J = 10. The belief is the worst case:
@@ -17,13 +16,10 @@ target is 20 ms for 150 particles and 22 actions.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import os
-import subprocess
-import sys
 from typing import Any
+
+from services.evaluation.machine import machine
 
 PARTICLES = (50, 150, 500)
 ACTIONS = (11, 22, 44)
@@ -75,7 +71,6 @@ def run_active_bench(repeats: int = 30, particles: tuple[int, ...] = PARTICLES,
 
     from lino_loc.active_vision import ActionEvaluator, ActiveVisionConfig
     from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig
-    from services.commands.bench import machine
 
     poses, feats = office_like_map()
     model = NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10))
@@ -113,44 +108,3 @@ def run_active_bench(repeats: int = 30, particles: tuple[int, ...] = PARTICLES,
                      "met_cpu": bool(ref and ref["cpu_median_ms"] <= TARGET_MS)}
     out["machine"] = machine()
     return out
-
-
-def _table(res: dict[str, Any]) -> str:
-    m = res["machine"]
-    lines = [f"one H(u) evaluation, office grid map ({res['map_entries']} entries, J = {res['j']}); "
-             f"{m['cpu']}, {m['cpu_count']} cpus, load {m['load_average']}",
-             f"{'':<24}{'median ms':>12}{'cpu ms':>10}"]
-    for n, r in res["particles"].items():
-        lines.append(f"{n + ' particles, 22 actions':<24}{r['median_ms']:>12.2f}{r['cpu_median_ms']:>10.2f}")
-    for a, r in res["actions"].items():
-        lines.append(f"{'150 particles, ' + a + ' actions':<24}{r['median_ms']:>12.2f}{r['cpu_median_ms']:>10.2f}")
-    g = res["generic_path_150x22"]
-    lines.append(f"{'generic path 150 x 22':<24}{g['median_ms']:>12.2f}{g['cpu_median_ms']:>10.2f}")
-    v = res["virtual_headings_150x22"]
-    lines.append(f"{'3-deg map, 150 x 22':<24}{v['median_ms']:>12.2f}{v['cpu_median_ms']:>10.2f}"
-                 f"   ({v['map_entries']} entries: virtual headings)")
-    t = res["target"]
-    lines.append(f"target <= {t['ms_max']} ms at 150 particles x 22 actions: wall {'met' if t['met_wall'] else 'NOT met'}, "
-                 f"cpu {'met' if t['met_cpu'] else 'NOT met'}")
-    return "\n".join(lines)
-
-
-def _active(args: argparse.Namespace) -> int:
-    from services.commands.bench import THREAD_VARS, single_threaded
-
-    if not single_threaded() and not args.no_reexec:
-        env = dict(os.environ, **{v: "1" for v in THREAD_VARS})
-        cmd = [sys.executable, "-m", "services.commands.bench", "active", "--repeats", str(args.repeats),
-               "--no-reexec"] + (["--json"] if args.json else [])
-        return subprocess.call(cmd, env=env)
-    res = run_active_bench(repeats=args.repeats)
-    print(json.dumps(res) if args.json else _table(res))
-    return 0
-
-
-def register_bench(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("active", help="time one active-vision action evaluation H(u)")
-    p.add_argument("--repeats", type=int, default=30, help="timed evaluations per setting")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--no-reexec", action="store_true", help=argparse.SUPPRESS)
-    p.set_defaults(func=_active)
