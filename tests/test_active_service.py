@@ -1,4 +1,4 @@
-"""Active vision in the service (issue 6): a still robot localizes faster with the head moving.
+"""Active vision in the service: a still robot localizes faster with the head moving.
 
 Fake hardware, real processes and sockets: `lino-loc sim --no-drive --start X,Y,THETA` (the
 robot stands still in the office; the Dynamixel head and the odometry board emulated on

@@ -1,4 +1,4 @@
-"""Fake-hardware integration tests of `lino-loc run` (issue 5, item 7), real processes and sockets.
+"""Fake-hardware integration tests of `lino-loc run`, real processes and sockets.
 
 `lino-loc sim` (the simulated robot: Dynamixel and odometry-board emulators on pseudo-terminals,
 the rendered camera over ZeroMQ, the true pose on a `truth` stream) and `lino-loc run` run as

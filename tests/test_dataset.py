@@ -1,4 +1,4 @@
-"""Dataset folders (design.md 4.2): writer/reader round trip and validation messages."""
+"""Dataset folders (docs/datasets.md): writer/reader round trip and validation messages."""
 
 from __future__ import annotations
 

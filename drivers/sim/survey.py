@@ -3,7 +3,7 @@
 :func:`run_survey` renders the camera view at every pose of :func:`grid_poses` (positions
 every ``step`` metres over the world's mapped area, headings every ``heading_step_rad``;
 poses where the robot's footprint touches furniture or walls are skipped) and writes the
-dataset folder of design.md 4.2 through :class:`lino_loc.dataset.DatasetWriter`: the left
+dataset folder (docs/datasets.md) through :class:`lino_loc.dataset.DatasetWriter`: the left
 (reference) image, its depth, the camera pose and the condition (the lighting name, joined
 with the scene-change names by ``+`` when there are any). With ``stereo`` the right image
 of the rectified pair goes to the ``right`` column / ``images_right/`` (an extension of the

@@ -5,7 +5,7 @@ differential-drive base, the Dynamixel bus and odometry board emulators on pseud
 the rendered stereo camera on a ZeroMQ PUB socket) and publishes the true robot pose at 50 Hz
 on a second PUB socket as ``[b"truth", TruthMessage JSON]`` (services.messages).
 
-Its FIRST line on stdout is one JSON object naming the devices (a contract, issue 4)::
+Its FIRST line on stdout is one JSON object naming the devices (a contract that `lino-loc run` and the tests read)::
 
     {"head": "/dev/pts/N", "odometry": "/tmp/lino-loc-sim-XXXX/odometry",
      "camera": "tcp://127.0.0.1:PORT", "truth": "tcp://127.0.0.1:PORT2",
