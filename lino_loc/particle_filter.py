@@ -377,17 +377,11 @@ class AuxiliaryParticleFilter:
         self._assign(self.motion.sample(self._particles, d, self.rng), self._weights)
         self.recovery.predict(d, self.rng)
 
-    def update(
-        self,
-        delta: ArrayLike,
-        pan: float,
-        mixture: PoseMixture | None,
-        rng: np.random.Generator | None = None,
-    ) -> float:
-        """One filter update with odometry increment ``delta`` (robot frame), head pan angle
-        and the sensor-model mixture of the new image (None: prediction only); ``rng``
-        replaces the filter's generator from now on. Returns the predictive log-likelihood of
-        the observation (nan without observation)."""
+    def update(self, delta: ArrayLike, pan: float, mixture: PoseMixture | None,
+               rng: np.random.Generator | None = None) -> float:
+        """One update: odometry increment ``delta`` (robot frame), head pan (rad), the image's
+        sensor-model mixture (None: prediction only); ``rng`` replaces the generator from now
+        on. Returns the predictive log-likelihood of the observation (nan without one)."""
         if rng is not None:
             self.rng = rng
         d = np.asarray(delta, dtype=np.float64).reshape(3)
