@@ -53,7 +53,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 # Constants of the test (each chosen on the 240 s lab drive; docs/results.md, "Notes moved from
 # the code: filter"):
-CHANCE_HIT_RATE = 0.05  # rho_0: the hit rate of a wrong belief (4-5 % measured in every light)
+CHANCE_HIT_RATE = 0.05  # rho_0: the hit rate of a wrong belief
 HIT_NATS = 1.0  # a hit: the predictive log-likelihood this far above the outlier floor
 MEMORY = 0.97  # forgetting factor of the learnt hit rate, per view
 MEMORY_SUSPECT = 0.995  # ... per view while evidence of being lost stands
