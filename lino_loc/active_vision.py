@@ -77,6 +77,7 @@ from scipy.special import i0e
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 from lino_loc.sensor_model import LOG_2PI, NearestNeighbourSensorModel, lambda_log_weights
+from lino_loc.weights import Weights
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -178,7 +179,7 @@ def belief_entropy(
     in one cell, log(number of cells) for a belief spread evenly over them (log N for N
     particles in N distinct cells with equal weights)."""
     p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
-    w = np.exp(np.asarray(log_weights, dtype=np.float64) - logsumexp(log_weights))
+    w = np.exp(Weights.from_log(log_weights, one_pass=False).log)
     n_th = max(1, int(round(2.0 * math.pi / cell_theta)))
     ix = np.floor(p[:, 0] / cell_xy).astype(np.int64)
     iy = np.floor(p[:, 1] / cell_xy).astype(np.int64)
@@ -229,8 +230,7 @@ def subsample(
     ``max_particles`` draws (offset from ``rng``, or 0.5 without one) is taken and merged
     again, so the weights stay proportional to the belief."""
     p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
-    lw = np.asarray(log_weights, dtype=np.float64).reshape(-1)
-    lw = lw - logsumexp(lw)
+    lw = Weights.from_log(np.asarray(log_weights, dtype=np.float64).reshape(-1), one_pass=False).log
     p, lw = _merge(p, lw)
     if p.shape[0] > max_particles:
         w = np.exp(lw)

@@ -3,45 +3,32 @@
 The filter's two self-checks learn what "normal" looks like: kidnap recovery compares the
 likelihood of each view with its long-term average ``w_slow`` (``lino_loc.kidnap_recovery``),
 the lost test with the hit rate it has learnt (``lino_loc.lost_detection``). Both were learnt
-under the light of the moment. When the lights are switched (tube -> bulb in the lab), every
-view fits the map worse at once: the likelihood drops far below ``w_slow`` (which needs ~1000
-updates to follow, ``alpha_slow``) and the misses look like a kidnapping, so recovery draws
-candidate sets from a sensor model that is now wrong, and an aliased place wins (measured:
-mean error after the switch 4.3 m, against 0.31 m for the same drive under bulb light from the
-start; docs/results.md).
+under the light of the moment. When the lights are switched every view fits the map worse at
+once, and the misses would look like a kidnapping. What tells the two apart is how FAMILIAR
+the views are (``PoseMixture.novelty``, the distance of the view to its nearest map entry over
+the map's own typical spacing): a kidnapped robot in a mapped place sees views as familiar as
+before, under another light every view is less familiar. This detector is a one-sided CUSUM
+(Page 1954) on the log-novelty x_t = log n_t against its learnt level mu:
 
-What tells the two apart is how FAMILIAR the views are (``PoseMixture.novelty``, the distance of
-the view to its nearest map entry over the map's own typical spacing): a kidnapped robot in a
-mapped place sees views as familiar as before, under another light every view is less familiar
-(median novelty in the lab 1.27 under the mapping light, 2.62 under bulb). This detector is a
-one-sided CUSUM (Page 1954) on the log-novelty against its slowly learnt level:
+    S_t = max(0, S_t-1 + v_t (x_t - mu - log ratio))
 
-    S_t = max(0, S_t-1 + v_t (log n_t - mu - log ratio))
-
-where v_t is how much of an independent view the frame is (``lino_loc.lost_detection.
-independent_views``: the odometry increment over the sensor model's kernel widths; the lost
-test counts the same way), so that the evidence does not depend on the frame rate: at 15 fps
-consecutive frames see nearly the same image, and counting frames raised two false alarms a
-minute in the simulated service under constant light. The level mu is learnt (exponential
-average, rate ``alpha`` per view) only from views seen while no evidence stands (S_t-1 = 0:
-the in-control level, as in a textbook CUSUM; a level that kept learning during a change would
-follow it and never let the evidence build up). It reports a change when ``S_t > evidence``
-and then restarts from the new level. Chosen on the 240 s lab drive at 5 Hz (3.9 frames per
-view; per-frame log-novelty spread 0.33-0.38) and the simulated service in the office (15 fps,
-wandering, active vision on): ``ratio`` 1.65 (log 0.5) and ``evidence`` 5 found the lab's tube
--> bulb switch 9 s after it (tube -> natural: 5.6 s) and raised nothing over the lab drive
-under tube, bulb or natural light alone, nor in 2.5 min of the office service; ``evidence`` 2
-(3 s) raised four alarms under natural light (daylight changes the views by place) and one a
-minute in the office service. A clean doubling of the novelty takes 32 views.
-A drop in novelty (lights back to the mapping light) is not a change it reports: the views fit
-better, neither check is misled. Chosen in simulation only; ``ratio`` is relative to the map's
-own spacing, so it transfers between maps, the evidence is a number of independent views'
-worth, so it does not depend on the frame rate.
+where v_t in [0, 1] is how much of an independent view the frame is
+(``lino_loc.lost_detection.independent_views``), so that the evidence does not depend on the
+frame rate. The level mu starts at the first observation's x and is learnt (mu += alpha v_t
+(x_t - mu)) only from views seen while no evidence stands (S_t-1 = 0: the in-control level,
+as in a textbook CUSUM; a level that kept learning during a change would follow it). It
+reports a change when ``S_t > evidence`` and then restarts from the new level (S = 0, mu =
+x_t). A drop in novelty (lights back to the mapping light) is not reported: the views fit
+better, neither check is misled. Observations without a positive finite novelty are ignored.
+``ratio`` is relative to the map's own spacing, so it transfers between maps; ``evidence`` is
+in log-novelty x independent views, so it does not depend on the frame rate. How the defaults
+were chosen: docs/results.md, "Lights switched while tracking" and "Notes moved from the code:
+filter".
 
 Usage::
 
     watch = AppearanceChangeDetector()
-    if watch.update(mixture.novelty, views=independent_views(delta, 0.35, 0.3)):
+    if watch.update(mixture.novelty, views=independent_views(delta)):
         ...  # relearn what normal looks like
 """
 
@@ -50,14 +37,34 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from pydantic import BaseModel, ConfigDict, Field
+
+# The detector's constants (docs/results.md, "Notes moved from the code: filter": chosen on the
+# 240 s lab drive and the simulated office service):
+RATIO = 1.65  # a rise of the views' novelty by more than this factor is evidence of a change
+EVIDENCE = 5.0  # CUSUM evidence (log-novelty x independent views) for a change
+ALPHA = 0.05  # learning rate of the in-control level, per view
+
+
+class AppearanceChangeConfig(BaseModel):
+    """The appearance-change watch, ``filter.appearance_change``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="watch for changes of the scene's appearance (lights switched): "
+        "kidnap recovery and the lost test then relearn what normal looks like instead of "
+        "taking the worse views for a kidnapping",
+    )
+
 
 @dataclass
 class AppearanceChangeDetector:
     """One-sided CUSUM on log-novelty (see the module docstring)."""
 
-    ratio: float = 1.65  # a rise of the novelty by more than this factor counts as evidence
-    evidence: float = 5.0  # S_t above this (log-novelty x views): the appearance changed
-    alpha: float = 0.05  # learning rate of the level mu, per view
+    ratio: float = RATIO  # a rise of the novelty by more than this factor counts as evidence
+    evidence: float = EVIDENCE  # S_t above this (log-novelty x views): the appearance changed
+    alpha: float = ALPHA  # learning rate of the level mu, per view
     score: float = field(default=0.0, init=False)  # S_t
     level: float = field(default=math.nan, init=False)  # mu_t, log-novelty
     changes: int = field(default=0, init=False)

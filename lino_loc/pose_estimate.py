@@ -1,12 +1,17 @@
-"""The filter's estimate: the dominant mode of a weighted set of robot poses (issue 3, item 3).
+"""The filter's estimate: the dominant mode of a weighted set of robot poses, and its state.
 
 The estimate is the dominant mode of the belief. When every particle lies within
-``compact_xy`` (1 m) and ``compact_theta`` (60 deg) of the weighted mean, the cloud is one mode
-and its weighted mean and covariance are the estimate (the usual case while tracking; saves
-the ~1 ms clustering at 1000 particles). Otherwise particles are binned into cells
-(0.5 m x 30 deg by default), occupied cells that touch (26-neighbourhood, heading cyclic) form
+:data:`COMPACT_XY` and :data:`COMPACT_THETA` of the weighted mean, the cloud is one mode and
+its weighted mean and covariance are the estimate (the usual case while tracking; the
+clustering is skipped). Otherwise particles are binned into cells (:data:`CLUSTER_CELL_XY` x
+:data:`CLUSTER_CELL_THETA`), occupied cells that touch (26-neighbourhood, heading cyclic) form
 clusters (:func:`cluster_labels`), and the heaviest cluster gives the weighted mean (circular
 mean for theta) and the 3 x 3 covariance (heading differences wrapped about the mean).
+
+The mode is converged (:meth:`EstimateConfig.converged`) when it holds at least
+``converged_mass`` of the weight, the square root of the largest eigenvalue of its position
+covariance is at most ``converged_std_xy`` and its heading standard deviation at most
+``converged_std_theta``.
 
 Usage::
 
@@ -22,6 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
 from lino_loc.poses import wrap_angle
@@ -29,9 +35,47 @@ from lino_loc.poses import wrap_angle
 FloatArray = NDArray[np.float64]
 State = Literal["global", "tracking", "lost"]
 
+# A cloud within this radius (m) and heading difference (rad) of its weighted mean is one mode
+# and is not clustered (docs/results.md, "Notes moved from the code: filter").
+COMPACT_XY = 1.0
+COMPACT_THETA = math.radians(60.0)
+# Cell size of the mode clustering, m and rad (docs/results.md, "Notes moved from the code:
+# filter").
+CLUSTER_CELL_XY = 0.5
+CLUSTER_CELL_THETA = math.radians(30.0)
+
+
+class EstimateConfig(BaseModel):
+    """When the dominant mode counts as converged (the filter then tracks), ``filter.estimate``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    converged_mass: float = Field(
+        0.6, ge=0.0, le=1.0, description="weight share the dominant mode must hold"
+    )
+    converged_std_xy: float = Field(
+        0.5, gt=0.0, description="largest position standard deviation of the mode, m"
+    )
+    converged_std_theta: float = Field(
+        math.radians(25.0), gt=0.0, description="largest heading standard deviation, rad"
+    )
+
+    def converged(self, cov: FloatArray, mass: float) -> bool:
+        """Whether a mode of covariance ``cov`` (3 x 3) and weight ``mass`` is converged: the
+        square root of the largest eigenvalue of the 2 x 2 position block, sqrt((a + d) / 2 +
+        hypot((a - d) / 2, b)), and the heading's standard deviation under their limits."""
+        a, b, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+        std_xy = math.sqrt(max(0.5 * (a + d) + math.hypot(0.5 * (a - d), b), 0.0))
+        std_th = math.sqrt(max(float(cov[2, 2]), 0.0))
+        return (
+            mass >= self.converged_mass
+            and std_xy <= self.converged_std_xy
+            and std_th <= self.converged_std_theta
+        )
+
 
 def cluster_labels(
-    poses: FloatArray, cell_xy: float = 0.5, cell_theta: float = math.radians(30.0)
+    poses: FloatArray, cell_xy: float = CLUSTER_CELL_XY, cell_theta: float = CLUSTER_CELL_THETA
 ) -> NDArray[np.int64]:
     """Connected components of occupied (x, y, theta) cells; heading bins are cyclic.
 
@@ -133,10 +177,10 @@ def dominant_mode(
     poses: FloatArray,
     weights: FloatArray,
     *,
-    compact_xy: float = 1.0,
-    compact_theta: float = math.radians(60.0),
-    cell_xy: float = 0.5,
-    cell_theta: float = math.radians(30.0),
+    compact_xy: float = COMPACT_XY,
+    compact_theta: float = COMPACT_THETA,
+    cell_xy: float = CLUSTER_CELL_XY,
+    cell_theta: float = CLUSTER_CELL_THETA,
     trig: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray, float]:
     """(mean, covariance, weight) of the heaviest mode of normalized weighted poses (see the

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lino_loc.appearance_change import AppearanceChangeDetector
+from lino_loc.appearance_change import AppearanceChangeConfig, AppearanceChangeDetector
+from lino_loc.kidnap_recovery import RATIO
 from lino_loc.poses import camera_pose
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -91,16 +92,16 @@ def test_filter_relearns_after_an_appearance_change_and_keeps_its_belief() -> No
     errors, states, changes = _switch_run(pf, model, f)
     first = int(np.argmax(changes > 0))
     assert changes[59] == 0 and 60 <= first <= 90 and changes[-1] == 1  # found once, after the switch
-    assert pf.candidate_draws == 0 and pf.recoveries == 0
+    assert pf.recovery.candidate_draws == 0 and pf.recovery.recoveries == 0
     assert "lost" not in states[first:]
     assert np.all(errors[30:] < 0.5), errors[30:]
     # what it relearnt: w_slow is the running mean of the likelihoods since the change, so it
     # sits at the new (lower) level, no longer at the one learnt before
-    assert pf.log_w_slow < pf.log_w_fast + math.log(1.0 / pf.config.recovery_ratio)
+    assert pf.recovery.log_w_slow < pf.recovery.log_w_fast + math.log(1.0 / RATIO)
 
 
 def test_the_detector_can_be_switched_off() -> None:
-    pf = _filter(n=100, seed=1, appearance_change=False)
+    pf = _filter(n=100, seed=1, appearance_change=AppearanceChangeConfig(enabled=False))
     assert pf.appearance_watch is None
 
 
@@ -108,9 +109,10 @@ def test_relearnt_averages_are_running_means() -> None:
     """After relearn_averages(), w_slow and w_fast are the plain means (linear space) of the
     likelihoods seen since, until 1 / n falls below their rates."""
     pf = _filter(n=100, seed=1)
-    pf.relearn_averages()
+    pf.recovery.relearn_averages()
     lls = [-1.0, -3.0, -2.0, -5.0]
     for ll in lls:
-        pf._track_likelihood(ll)
+        pf.recovery.track_likelihood(ll)
     mean = math.log(np.mean(np.exp(lls)))
-    assert pf.log_w_slow == pytest.approx(mean) and pf.log_w_fast == pytest.approx(mean)
+    assert pf.recovery.log_w_slow == pytest.approx(mean)
+    assert pf.recovery.log_w_fast == pytest.approx(mean)

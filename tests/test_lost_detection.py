@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lino_loc.lost_detection import LostDetector
+from lino_loc.lost_detection import CHANCE_HIT_RATE, LostConfig, LostDetector
 
 STEP = np.array([0.35, 0.0, 0.0])  # one independent view per observation
 
@@ -58,7 +58,8 @@ def test_hits_clear_the_evidence_and_a_still_robot_adds_none() -> None:
 def test_nothing_is_learnt_from_views_without_information() -> None:
     """A hit rate at chance level (a wrong belief, or views that match nothing) gives no
     evidence either way: misses then add nothing."""
-    det = LostDetector(chance_hit_rate=0.05)
+    assert CHANCE_HIT_RATE == 0.05
+    det = LostDetector()
     _learn(det, 0.0, n=400)
     assert det.hit_rate < 0.05
     score = det.score  # (the first misses, while rho was still the prior's 1/2, count a little)
@@ -68,7 +69,7 @@ def test_nothing_is_learnt_from_views_without_information() -> None:
 
 
 def test_a_new_belief_must_be_confirmed_and_keeps_the_learnt_reliability() -> None:
-    det = LostDetector(confirm_views=1.0)
+    det = LostDetector(LostConfig(confirm_views=1.0))
     _learn(det, 0.9)
     rho = det.hit_rate
     assert det.confirmed
@@ -93,4 +94,4 @@ def test_doubt_grows_with_the_evidence_and_reaches_one_when_lost() -> None:
         det.update(0.0, STEP)
         seen.append(det.doubt)
     assert all(b > a for a, b in zip(seen, seen[1:], strict=False))  # each miss adds evidence
-    assert seen[-2] < 1.0 < seen[-1] and det.doubt == det.score / det.threshold
+    assert seen[-2] < 1.0 < seen[-1] and det.doubt == det.score / det.config.threshold

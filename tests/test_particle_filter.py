@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from lino_loc.kidnap_recovery import RecoveryConfig
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import (
     AuxiliaryParticleFilter,
@@ -17,8 +18,13 @@ from lino_loc.particle_filter import (
     weighted_pose_stats,
 )
 from lino_loc.poses import camera_pose, compose, wrap_angle
-from lino_loc.resampling import effective_sample_size, systematic
+from lino_loc.resampling import systematic
 from lino_loc.sensor_model import Bounds, NearestNeighbourSensorModel, SensorModelConfig
+from lino_loc.weights import Weights
+
+
+def effective_sample_size(log_weights) -> float:
+    return Weights.from_log(log_weights).ess()
 
 # --------------------------------------------------------------------- linear Gaussian vs KF
 
@@ -69,14 +75,14 @@ def test_apf_matches_kalman_filter_on_linear_gaussian_model(beta: float) -> None
         else:
             res = apf_step(
                 parts,
-                lw,
+                Weights(lw),
                 prng,
                 predict_mean=lambda z: A * z,
                 propagate=lambda z, g: A * z + g.normal(0, math.sqrt(Q), z.shape),
                 log_likelihood=loglik,
                 first_stage_exponent=beta,
             )
-            parts, lw, ll = res.particles, res.log_weights, res.log_likelihood
+            parts, lw, ll = res.particles, res.weights.log, res.log_likelihood
         w = np.exp(lw)
         mean = float(w @ parts[:, 0])
         pf_m.append(mean)
@@ -108,14 +114,14 @@ def test_no_observation_is_pure_prediction() -> None:
     lw -= np.log(np.exp(lw).sum())
     res = apf_step(
         parts,
-        lw,
+        Weights(lw),
         rng,
         predict_mean=lambda z: z,
         propagate=lambda z, g: z + 1.0,
         log_likelihood=None,
     )
     np.testing.assert_allclose(res.particles, parts + 1.0)
-    np.testing.assert_allclose(res.log_weights, lw)
+    np.testing.assert_allclose(res.weights.log, lw)
 
 
 # --------------------------------------------------------------------- pose filter
@@ -281,14 +287,14 @@ def test_global_localization_then_kidnap_recovery() -> None:
     # hold for recovery_min_updates = 5, then the candidate set drawn from the sensor model is
     # tested for >= candidate_min_updates = 8 updates (27-33 updates measured over 6 seeds)
     assert np.all(errors[kidnap_at + 45 :] < 0.5), errors[kidnap_at:]
-    assert pf.recoveries == 1 and pf.candidate_draws == 1
+    assert pf.recovery.recoveries == 1 and pf.recovery.candidate_draws == 1
     assert states[-1] == "tracking"
 
 
 def test_amcl_recovery_is_faster_but_trusts_every_view() -> None:
     """recovery="amcl" (inject into the belief whenever w_fast < w_slow) recovers sooner."""
     model, f = _synthetic_model()
-    pf = _filter(n=800, seed=1, recovery="amcl")
+    pf = _filter(n=800, seed=1, recovery=RecoveryConfig(mode="amcl"))
     errors, _ = _kidnap_run(pf, model, f, horizon=70)
     assert np.all(errors[40 + 15 :] < 0.5), errors[40:]
 
@@ -300,11 +306,11 @@ def test_a_burst_of_consistent_wrong_views_does_not_capture_the_belief() -> None
     kw = dict(horizon=60, kidnap_at=None, ghost_from=30, ghost_len=12)
     pf = _filter(n=800, seed=1)
     errors, _ = _kidnap_run(pf, model, f, **kw)
-    assert pf.candidate_draws == 0 and pf.recoveries == 0
+    assert pf.recovery.candidate_draws == 0 and pf.recovery.recoveries == 0
     # (during the burst the belief drifts on odometry, up to 1.4 m measured over 3 seeds)
     assert errors[25:30].max() < 0.5 and errors[30:45].max() < 2.0, errors[25:]
     assert np.all(errors[45:] < 0.5), errors[25:]
-    amcl = _filter(n=800, seed=1, recovery="amcl")
+    amcl = _filter(n=800, seed=1, recovery=RecoveryConfig(mode="amcl"))
     errors_amcl, _ = _kidnap_run(amcl, model, f, **kw)
     assert errors_amcl[30:45].max() > 2.0  # captured by the ghost (2.6-3.3 m over 3 seeds)
 
@@ -315,7 +321,7 @@ def test_novel_views_draw_no_candidates() -> None:
     model, f = _synthetic_model()
     pf = _filter(n=800, seed=1)
     errors, states = _kidnap_run(pf, model, f, horizon=90, novelty=3.0)
-    assert pf.candidate_draws == 0 and pf.recoveries == 0
+    assert pf.recovery.candidate_draws == 0 and pf.recovery.recoveries == 0
     assert errors[-1] > 3.0
     assert "lost" in states[40:]
 
@@ -326,7 +332,8 @@ def test_pose_update_is_the_generic_apf_step(pan: float) -> None:
     weights) equals apf_step with the textbook callables: log p(y | camera_pose(mu, pan)) at
     mu = predict_mean(x), the same random stream, the same particles and weights."""
     model, f = _synthetic_model()
-    pf = _filter(n=1000, seed=7, max_inject_fraction=0.0, resample_threshold=0.0)
+    pf = _filter(n=1000, seed=7, recovery=RecoveryConfig(max_inject_fraction=0.0),
+                 resample_threshold=0.0)
     pf.set_pose([3.0, 2.0, 0.5], np.diag([0.3, 0.3, 0.2]) ** 2)
     mix = model.observe(f(camera_pose(np.array([3.1, 2.0, 0.45]), pan))[0])
     d = np.array([0.1, 0.02, 0.05])
@@ -334,19 +341,19 @@ def test_pose_update_is_the_generic_apf_step(pan: float) -> None:
     pf.rng = np.random.default_rng(21)
     pf.update(d, pan, mix)
     ref = apf_step(
-        x0, lw0, np.random.default_rng(21),
+        x0, Weights(lw0), np.random.default_rng(21),
         predict_mean=lambda x: pf.motion.predict_mean(x, d),
         propagate=lambda x, g: pf.motion.sample(x, d, g),
         log_likelihood=lambda x: mix.log_pdf(camera_pose(x, pan)),
     )
     np.testing.assert_allclose(pf.particles, ref.particles, atol=1e-12)
-    np.testing.assert_allclose(pf.log_weights, ref.log_weights, atol=1e-9)
+    np.testing.assert_allclose(pf.log_weights, ref.weights.log, atol=1e-9)
     # the estimate from the cached cos / sin is the one from the particles
-    mean, cov = weighted_pose_stats(ref.particles, np.exp(ref.log_weights))
+    mean, cov = weighted_pose_stats(ref.particles, np.exp(ref.weights.log))
     est = pf.estimate()
     np.testing.assert_allclose(est.pose, mean, atol=1e-12)
     np.testing.assert_allclose(est.covariance, cov, atol=1e-12)
-    assert est.ess == pytest.approx(effective_sample_size(ref.log_weights), rel=1e-9)
+    assert est.ess == pytest.approx(effective_sample_size(ref.weights.log), rel=1e-9)
 
 
 def test_lost_state_when_the_views_stop_matching_the_belief() -> None:
@@ -358,7 +365,7 @@ def test_lost_state_when_the_views_stop_matching_the_belief() -> None:
     f = _feature_fn()
     poses = _grid()
     model = NearestNeighbourSensorModel(poses, f(poses), SensorModelConfig(j=10))
-    pf = _filter(n=500, seed=3, max_inject_fraction=0.0)  # no recovery: it must say "lost"
+    pf = _filter(n=500, seed=3, recovery=RecoveryConfig(max_inject_fraction=0.0))  # no recovery: it must say "lost"
     rng = np.random.default_rng(4)
     truth = np.array([2.0, 2.0, 0.0])
     pf.set_pose(truth, np.diag([0.01, 0.01, 0.005]))

@@ -8,14 +8,17 @@ from scipy.special import logsumexp as scipy_logsumexp
 
 from lino_loc.resampling import (
     SCHEMES,
-    effective_sample_size,
     get_resampler,
     logsumexp,
     multinomial,
-    normalize_log_weights,
     stratified,
     systematic,
 )
+from lino_loc.weights import NoFiniteWeightError, Weights
+
+
+def effective_sample_size(log_weights) -> float:
+    return Weights.from_log(log_weights).ess()
 
 W = np.array([0.02, 0.3, 0.05, 0.13, 0.0, 0.2, 0.07, 0.18, 0.04, 0.01])
 
@@ -87,7 +90,9 @@ def test_logsumexp_matches_scipy_and_handles_minus_inf() -> None:
     assert logsumexp(a) == pytest.approx(float(scipy_logsumexp(a)))
     assert logsumexp(np.array([-np.inf, -np.inf])) == -np.inf
     with pytest.raises(ValueError):
-        normalize_log_weights([-np.inf, -np.inf])
+        Weights.from_log([-np.inf, -np.inf])
+    with pytest.raises(NoFiniteWeightError):
+        Weights.from_log([-np.inf, -np.inf], one_pass=False)
 
 
 def test_unknown_scheme() -> None:

@@ -22,7 +22,7 @@ Per condition two runs of the :class:`lino_loc.localizer.Localizer` on the same 
   ``converged_state_after_s``, when the filter itself first reported ``tracking``.
 
 ``without_recovery`` repeats both runs with the kidnap recovery switched off
-(``filter.max_inject_fraction = 0``), to show what recovery costs or buys: under changed light
+(``filter.recovery.max_inject_fraction = 0``), to show what recovery costs or buys: under changed light
 the sensor model is often wrong in a consistent way, which is why the filter only trusts
 familiar views for recovery while tracking (``lino_loc.particle_filter``, see the docs).
 
@@ -223,7 +223,7 @@ def run(
                 res["converged_state_after_s"] = first_tr
             if setup.compare_recovery:
                 cfg0 = cfg.model_copy(deep=True)
-                cfg0.filter.max_inject_fraction = 0.0
+                cfg0.filter.recovery.max_inject_fraction = 0.0
                 est0, states0 = run_filter(amap, cfg0, plan, images, truth[0], start_cov, (setup.seed, 1))
                 res0: dict[str, Any] = {**track_metrics(est0, truth),
                                         "lost_fraction": float(np.mean([s == "lost" for s in states0]))}
