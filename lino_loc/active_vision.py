@@ -279,16 +279,7 @@ class ActionEvaluator:
         self.map_poses = np.asarray(model.poses, dtype=np.float64)
         n_map = self.map_poses.shape[0]
         # The sensor mixture of every map entry's own features: N x J neighbours, log-lambdas.
-        if self.config.predicted_neighbours == "leave_one_out" and model.j < n_map:
-            idx, d2 = model.neighbours(model.features, model.j + 1)
-            own = idx == np.arange(n_map)[:, None]
-            drop = np.where(own.any(axis=1), np.argmax(own, axis=1), model.j)
-            keep = np.ones_like(own)
-            keep[np.arange(n_map), drop] = False
-            idx = idx[keep].reshape(n_map, model.j)
-            d2 = d2[keep].reshape(n_map, model.j)
-        else:
-            idx, d2 = model.neighbours(model.features)
+        idx, d2 = self._predicted_neighbours(model)
         self.nn_index = idx
         self.nn_log_lambda = lambda_log_weights(d2, c.lambda_scale, c.lambda_scale_factor)
         # log of the kernel's normalizer: phi = exp(-|de|^2 / 2 + log_norm)
@@ -326,6 +317,23 @@ class ActionEvaluator:
         if grid is not None:  # position and heading index of each neighbour column
             self._nn_pcol = (self._nn_cols // self._headings.size).astype(np.intp)
             self._nn_hcol = (self._nn_cols % self._headings.size).astype(np.intp)
+
+    def _predicted_neighbours(
+        self, model: NearestNeighbourSensorModel
+    ) -> tuple[IntArray, FloatArray]:
+        """(indices, squared feature distances), (N, J), of the J map entries nearest to each map
+        entry's own features: the sensor mixture of a view predicted at that entry. With
+        ``predicted_neighbours = "leave_one_out"`` the entry itself is left out (the J nearest
+        others; when the entry is not among its J + 1 nearest, the farthest of them goes)."""
+        n_map = model.poses.shape[0]
+        if self.config.predicted_neighbours != "leave_one_out" or model.j >= n_map:
+            return model.neighbours(model.features)
+        idx, d2 = model.neighbours(model.features, model.j + 1)
+        own = idx == np.arange(n_map)[:, None]
+        drop = np.where(own.any(axis=1), np.argmax(own, axis=1), model.j)
+        keep = np.ones_like(own)
+        keep[np.arange(n_map), drop] = False
+        return idx[keep].reshape(n_map, model.j), d2[keep].reshape(n_map, model.j)
 
     def _product_grid(self) -> tuple[FloatArray, FloatArray, IntArray] | None:
         """(positions (P, 2), headings (H,), column of each entry) if the map is a product grid."""
