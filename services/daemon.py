@@ -54,13 +54,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 import zmq
 
+from drivers.interfaces import Odometry, PanTiltHead, StereoCamera, StereoFrame
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
 from lino_loc.pose_estimate import Estimate
@@ -69,11 +69,15 @@ from services.active_head import ActiveHead
 from services.config import ServiceConfig
 from services.control import CommandQueue, ControlHandlers, ControlServer
 from services.device_threads import (
+    CameraFactory,
     CameraWorker,
+    DeviceWorker,
     FrameMailbox,
+    HeadFactory,
     HeadHistory,
     HeadWorker,
     OdometryBuffer,
+    OdometryFactory,
     OdometryWorker,
 )
 from services.persistence import SavedState, StateSaver, load_state
@@ -90,29 +94,34 @@ RESTORE_MIN_STD = (0.1, 0.1, 0.05)
 #: Frame periods without a frame before the loop dead-reckons (at least 1 s).
 CAMERA_TIMEOUT_PERIODS = 5.0
 
-DeviceFactory = Callable[[], Any]
+class DeviceFactories(TypedDict):
+    """How the daemon makes its three drivers (each worker calls its factory again after a
+    failure, see ``services.device_threads``)."""
+
+    camera: CameraFactory
+    head: HeadFactory
+    odometry: OdometryFactory
 
 
-def default_device_factories(cfg: ServiceConfig, disparity: bool) -> dict[str, DeviceFactory]:
+def default_device_factories(cfg: ServiceConfig, disparity: bool) -> DeviceFactories:
     """Factories of the configured drivers (ports and endpoint already resolved)."""
     d = cfg.devices
-    factories: dict[str, DeviceFactory] = {}
+    camera: CameraFactory
     if d.camera.kind == "sim":
         endpoint = d.camera.sim.endpoint
 
-        def camera() -> Any:
+        def camera() -> StereoCamera:
             from drivers.sim.camera import SimStereoCamera
 
             return SimStereoCamera(endpoint, compute_disparity=disparity)
     else:
         oakd_cfg = d.camera.oakd
 
-        def camera() -> Any:
+        def camera() -> StereoCamera:
             from drivers.oakd import OakdCamera
 
             return OakdCamera(oakd_cfg)
 
-    factories["camera"] = camera
     if d.head.kind != "dynamixel":
         raise LinoLocError(
             'devices.head.kind = "sim" has no in-process head in `lino-loc run`; use kind = '
@@ -120,12 +129,11 @@ def default_device_factories(cfg: ServiceConfig, disparity: bool) -> dict[str, D
         )
     head_cfg = d.head.driver_config()
 
-    def head() -> Any:
+    def head() -> PanTiltHead:
         from drivers.dynamixel_head import DynamixelHead
 
         return DynamixelHead(head_cfg)
 
-    factories["head"] = head
     if d.odometry.kind != "serial":
         raise LinoLocError(
             'devices.odometry.kind = "sim" has no in-process odometry in `lino-loc run`; use '
@@ -133,13 +141,12 @@ def default_device_factories(cfg: ServiceConfig, disparity: bool) -> dict[str, D
         )
     odo_cfg = d.odometry.driver_config()
 
-    def odometry() -> Any:
+    def odometry() -> Odometry:
         from drivers.serial_odometry import SerialOdometry
 
         return SerialOdometry(odo_cfg)
 
-    factories["odometry"] = odometry
-    return factories
+    return DeviceFactories(camera=camera, head=head, odometry=odometry)
 
 
 @dataclass
@@ -184,7 +191,7 @@ class Daemon:
         amap: Any,
         *,
         truth_endpoint: str | None = None,
-        device_factories: dict[str, DeviceFactory] | None = None,
+        device_factories: DeviceFactories | None = None,
         notifier: sd_notify.Notifier | None = None,
         context: zmq.Context[Any] | None = None,
     ) -> None:
@@ -197,17 +204,19 @@ class Daemon:
         self.ctx = context or zmq.Context()
         self.localizer = Localizer(amap, cfg.localizer)
         self.commands = CommandQueue()
-        self.mailbox: FrameMailbox[Any] = FrameMailbox()
+        self.mailbox: FrameMailbox[StereoFrame] = FrameMailbox()
         self.odometry = OdometryBuffer()
         self.heads = HeadHistory()
-        self.workers: dict[str, Any] = {
+        head_worker = HeadWorker(factories["head"], self.heads)
+        head_worker.command(0.0, 0.0)  # start looking ahead (sent once its thread runs)
+        self.workers: dict[str, DeviceWorker[Any]] = {
             "camera": CameraWorker(factories["camera"], self.mailbox),
             "odometry": OdometryWorker(factories["odometry"], self.odometry),
-            "head": HeadWorker(factories["head"], self.heads),
+            "head": head_worker,
         }
         head = cfg.devices.head
         self.active = ActiveHead(
-            cfg.active_vision, (head.pan_min, head.pan_max), self.localizer, self.heads, self.workers["head"]
+            cfg.active_vision, (head.pan_min, head.pan_max), self.localizer, self.heads, head_worker
         )
         self.saver = StateSaver(cfg.persistence.state_file)
         self.publisher: Publisher | None = None
@@ -241,7 +250,6 @@ class Daemon:
             self.publisher.close()
             raise
         self._initial_belief()
-        self.workers["head"].command(0.0, 0.0)  # start looking ahead
         for w in self.workers.values():
             w.start()
         self.control.start()
@@ -326,7 +334,7 @@ class Daemon:
             self.shutdown()
         return 0
 
-    def _on_frame(self, frame: Any) -> None:
+    def _on_frame(self, frame: StereoFrame) -> None:
         stamp = float(frame.stamp)
         if not self.watch.fresh(stamp):
             self.status.out_of_order()
