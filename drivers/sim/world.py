@@ -33,9 +33,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from drivers.sim.config_files import WORLDS_DIR
 from lino_loc.errors import LinoLocError
-
-WORLDS_DIR = Path(__file__).resolve().parents[2] / "config" / "worlds"
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]

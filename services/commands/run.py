@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from drivers.sim.config_files import SIM_TOML
 from lino_loc.errors import LinoLocError
 
 log = logging.getLogger("lino_loc.service")
@@ -42,8 +43,6 @@ log = logging.getLogger("lino_loc.service")
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 _REEXEC_MARK = "LINO_LOC_RUN_REEXEC"
 
-#: The simulated robot's configuration file shipped with the project.
-SIM_TOML = Path(__file__).resolve().parents[2] / "config" / "sim.toml"
 
 
 def _single_threaded_blas() -> None:
