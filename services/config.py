@@ -50,6 +50,7 @@ from drivers.oakd_config import OakdConfig
 from drivers.serial_odometry import OdometryConfig
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import LocalizerConfig
+from lino_loc.particle_filter import FilterConfig, old_key_problems
 from lino_loc.preprocessing import Preprocess
 from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
 from services.persistence import PersistenceConfig
@@ -428,6 +429,8 @@ def _unknown_env(environ: Mapping[str, str]) -> list[str]:
         for i, part in enumerate(parts):
             fields = model.model_fields if model is not None else {}
             if part not in fields:
+                if model is FilterConfig and old_key_problems({part: None}):
+                    break  # a retired filter key: FilterConfig's validator names its new key
                 where = ".".join(parts[: i + 1])
                 problems.append(f"{where}: unknown key (from environment {key})")
                 break

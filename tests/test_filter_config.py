@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
@@ -81,3 +82,12 @@ def test_new_keys_load_from_toml(tmp_path) -> None:
         "[localizer.filter.recovery]\nmode = \"amcl\"\n"
     )
     assert check_config(path) == []
+
+
+def test_an_old_filter_key_from_the_environment_is_one_line(monkeypatch) -> None:
+    monkeypatch.setenv("LINO_LOC__LOCALIZER__FILTER__LOST_MEMORY", "0.9")
+    lino = Path(__file__).resolve().parents[1] / "config" / "lino.toml"
+    assert check_config(lino) == [
+        f"{lino}: localizer.filter: filter.lost_memory is no longer a setting "
+        "(the constant lino_loc.lost_detection.MEMORY)"
+    ]
