@@ -37,7 +37,9 @@ Map file (a contract; docs/datasets.md describes it for users). One uncompressed
 The checksum is SHA-256 over every non-header array in name order (name, dtype, shape and
 raw bytes). :meth:`AppearanceMap.load` turns every way a file can be wrong (missing, empty,
 truncated, not an archive, a foreign archive, a newer format, a bad header, missing or
-inconsistent arrays, a checksum mismatch) into a one-line :class:`LinoLocError` naming the
+inconsistent arrays, a checksum mismatch, and content that no map holds: non-finite or
+implausible poses or extent by the dataset's rules, non-finite or huge features and
+projections, see :func:`_check_content`) into a one-line :class:`LinoLocError` naming the
 file and the problem.
 
 Usage::

@@ -32,6 +32,10 @@ Usage::
 :meth:`Dataset.open` checks everything that is cheap (schema, version, every cell of
 ``poses.csv``, that every referenced file exists) and raises :class:`LinoLocError` with one
 line naming the file, row and field. Reading an unreadable image later raises the same.
+:func:`dataset_problems` checks the content (every file decoded at the camera's size,
+plausible poses in metres: :func:`pose_problem`, :func:`extent_problem`) and lists every
+problem; :func:`require_valid` raises with the first. ``lino-loc dataset check`` and
+``lino-loc map build`` use them.
 """
 
 from __future__ import annotations
