@@ -308,7 +308,7 @@ def _array_problem(a: np.ndarray, limit: float, nonnegative: bool = False) -> st
         return None
     flat = a.reshape(len(a), -1) if a.ndim > 1 else a.reshape(-1, 1)
     with np.errstate(invalid="ignore"):
-        bad = ~(np.abs(flat) <= limit) | ((flat < 0) if nonnegative else False)
+        bad = ~np.isfinite(flat) | ~(np.abs(flat) <= limit) | ((flat < 0) if nonnegative else False)
     row = int(np.flatnonzero(bad.any(axis=1))[0])
     v = float(flat[row][bad[row]][0])
     rule = "negative" if math.isfinite(v) and abs(v) <= limit else f"beyond +-{limit:g}"

@@ -532,12 +532,16 @@ MAX_ABS_POSITION_M = 1.0e7
 #: survey in degrees (0..350) is far beyond it.
 MAX_ABS_THETA_RAD = 8.0 * math.pi
 
-#: What each file column must decode to: (dtype, allowed channel counts; 0 = 2-D array).
-_FILE_KINDS: dict[str, tuple[type, tuple[int, ...], str]] = {
-    "image": (np.uint8, (0, 1, 3, 4), "an 8-bit image"),
-    "right": (np.uint8, (0, 1, 3, 4), "an 8-bit image"),
-    "disparity": (np.uint16, (0,), "a 16-bit single-channel PNG"),
-    "depth": (np.uint16, (0,), "a 16-bit single-channel PNG"),
+#: What each file column is decoded with and must decode to: (OpenCV flags, dtype, allowed
+#: channel counts with 0 = a 2-D array, what it is). Images keep their depth and colours but,
+#: as :meth:`Dataset.read_grey` does, follow a JPEG's EXIF orientation (which
+#: ``IMREAD_UNCHANGED`` ignores), so the size checked is the size read.
+_IMAGE_FLAGS = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
+_FILE_KINDS: dict[str, tuple[int, type, tuple[int, ...], str]] = {
+    "image": (_IMAGE_FLAGS, np.uint8, (0, 1, 3), "an 8-bit image"),
+    "right": (_IMAGE_FLAGS, np.uint8, (0, 1, 3), "an 8-bit image"),
+    "disparity": (cv2.IMREAD_UNCHANGED, np.uint16, (0,), "a 16-bit single-channel PNG"),
+    "depth": (cv2.IMREAD_UNCHANGED, np.uint16, (0,), "a 16-bit single-channel PNG"),
 }
 
 
@@ -580,11 +584,11 @@ def extent_problem(poses: np.ndarray) -> str | None:
 def _file_problem(path: Path, kind: str, camera: CameraInfo) -> str | None:
     """Why the file ``path`` of column ``kind`` is not what the dataset says (undecodable,
     another pixel type, another size than ``camera``), or None. Decodes it in full."""
+    flags, dtype, channels, what = _FILE_KINDS[kind]
     try:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raw = cv2.imread(str(path), flags)
     except cv2.error:  # pragma: no cover - OpenCV reports most bad files as None
         raw = None
-    dtype, channels, what = _FILE_KINDS[kind]
     if raw is None:
         return f"cannot be decoded (not {what}, or corrupt)"
     nch = 0 if raw.ndim == 2 else raw.shape[2]
@@ -619,8 +623,8 @@ def dataset_problems(
 
     What :meth:`Dataset.open` does not check because it is not cheap: every pose is
     plausible (:func:`pose_problem`), the survey's extent is (:func:`extent_problem`), and
-    every image, right image, disparity and depth file decodes (``cv2.IMREAD_UNCHANGED``) to
-    the pixel type its column needs and to the camera's size. Files are decoded by a thread
+    every image, right image, disparity and depth file decodes (``_FILE_KINDS``) to the
+    pixel type its column needs and to the camera's size. Files are decoded by a thread
     pool (OpenCV releases the GIL; default 4 threads, at most 2 per core; ``workers`` <= 1:
     none). ``progress(done, total)`` is called as rows are checked. Lines name the file, the
     line of ``poses.csv`` and the field. ``lino-loc dataset check`` and ``lino-loc map

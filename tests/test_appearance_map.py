@@ -277,6 +277,7 @@ def _poses_scaled(arrays, row: int | None = None, value: float = 0.0, scale: flo
     [
         (lambda a: _poses_scaled(a, 7, 1e300), ("'poses' row 7: field 'x': 1e+300 is not a position in metres",)),
         (lambda a: _poses_scaled(a, 3, np.nan), ("'poses' holds nan (row 3): not finite",)),
+        (lambda a: _poses_scaled(a, 2, -np.inf), ("'poses' holds -inf (row 2): not finite",)),
         (lambda a: _poses_scaled(a, scale=1000.0), ("'poses': extent 1900 x 0 m: are the poses in millimetres?",)),
         (lambda a: a["intensity/features"].__setitem__((5, 2), np.nan), ("'intensity/features' holds nan (row 5)",)),
         (lambda a: a.update({"intensity/mean": a["intensity/mean"].astype(np.float64) * 0 + 1e300}),
