@@ -37,7 +37,9 @@ Map file (a contract; docs/datasets.md describes it for users). One uncompressed
 The checksum is SHA-256 over every non-header array in name order (name, dtype, shape and
 raw bytes). :meth:`AppearanceMap.load` turns every way a file can be wrong (missing, empty,
 truncated, not an archive, a foreign archive, a newer format, a bad header, missing or
-inconsistent arrays, a checksum mismatch) into a one-line :class:`LinoLocError` naming the
+inconsistent arrays, a checksum mismatch, and content that no map holds: non-finite or
+implausible poses or extent by the dataset's rules, non-finite or huge features and
+projections, see :func:`_check_content`) into a one-line :class:`LinoLocError` naming the
 file and the problem.
 
 Usage::
@@ -56,6 +58,7 @@ import datetime as _dt
 import hashlib
 import json
 import logging
+import math
 import os
 import zipfile
 import zlib
@@ -70,7 +73,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from lino_loc import __version__
 from lino_loc.atomic_file import atomic_write
-from lino_loc.dataset import CameraInfo, Dataset
+from lino_loc.dataset import (
+    MAX_ABS_POSITION_M,
+    MAX_ABS_THETA_RAD,
+    POSES_FILE,
+    CameraInfo,
+    Dataset,
+    extent_problem,
+    pose_problem,
+)
 from lino_loc.errors import LinoLocError
 from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, fit_pca
 from lino_loc.preprocessing import PREPROCESS_METHODS, Preprocess, preprocess, to_vector
@@ -279,6 +290,69 @@ def _utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
 
+#: Largest magnitude a map's features and projection arrays may hold. They are projections
+#: of preprocessed images (values in [0, 1], or gradients in multiples of their mean) or of
+#: disparities in pixels, over at most a few million pixels: far below 1e9. Beyond it the
+#: squared feature distances of the sensor model overflow float32.
+MAX_ABS_MAP_VALUE = 1.0e9
+
+
+def _array_problem(a: np.ndarray, limit: float, nonnegative: bool = False) -> str | None:
+    """Why ``a`` is not finite with ``|v| <= limit`` (and ``v >= 0`` if ``nonnegative``), as
+    ``"holds nan (row 3)"``, or None. Two passes without temporaries (min and max, which
+    propagate NaN); the offending row is looked up only when there is one."""
+    if a.size == 0 or a.dtype.kind not in "fiu":
+        return None if a.size == 0 else f"has dtype {a.dtype}, expected numbers"
+    lo, hi = float(a.min()), float(a.max())
+    if math.isfinite(lo) and math.isfinite(hi) and max(-lo, hi) <= limit and not (nonnegative and lo < 0):
+        return None
+    flat = a.reshape(len(a), -1) if a.ndim > 1 else a.reshape(-1, 1)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(flat) | ~(np.abs(flat) <= limit) | ((flat < 0) if nonnegative else False)
+    row = int(np.flatnonzero(bad.any(axis=1))[0])
+    v = float(flat[row][bad[row]][0])
+    rule = "negative" if math.isfinite(v) and abs(v) <= limit else f"beyond +-{limit:g}"
+    return f"holds {v:g} (row {row}): {'not finite' if not math.isfinite(v) else rule}"
+
+
+def _check_content(path: Path, header: MapHeader, arrays: Mapping[str, np.ndarray]) -> None:
+    """LinoLocError naming ``path`` and what is wrong if the map's content is implausible:
+    a camera pose that :func:`lino_loc.dataset.pose_problem` refuses, an extent that
+    :func:`lino_loc.dataset.extent_problem` refuses (the rules a dataset passes), a feature or
+    projection value not finite or beyond :data:`MAX_ABS_MAP_VALUE` (a variance beyond its
+    square, or negative), a negative count, or a header parameter that is not finite. The
+    checksum only says that the file is as it was written; this says that what was written
+    is a map. Shapes are checked before (``_from_parts``)."""
+    def bad(msg: str) -> LinoLocError:
+        return LinoLocError(f"{path}: implausible map content: {msg}")
+
+    poses = arrays[POSES_KEY]
+    msg = _array_problem(poses, math.inf)
+    if msg is not None:
+        raise bad(f"'{POSES_KEY}' {msg}")
+    lim = np.array([MAX_ABS_POSITION_M, MAX_ABS_POSITION_M, MAX_ABS_THETA_RAD])
+    rows = np.flatnonzero((np.abs(poses) > lim).any(axis=1))
+    if len(rows):
+        raise bad(f"'{POSES_KEY}' row {int(rows[0])}: {pose_problem(poses[rows[0]])}")
+    msg = extent_problem(poses)
+    if msg is not None:
+        raise bad(f"'{POSES_KEY}': {msg}")
+    for name, ch in header.channels.items():
+        for k in ch.arrays:
+            a = arrays[f"{name}/{k}"]
+            if a.dtype.kind in "iu":
+                msg = _array_problem(a, math.inf, nonnegative=True)
+            elif k == "explained_variance":
+                msg = _array_problem(a, MAX_ABS_MAP_VALUE**2, nonnegative=True)
+            else:
+                msg = _array_problem(a, MAX_ABS_MAP_VALUE)
+            if msg is not None:
+                raise bad(f"'{name}/{k}' {msg}")
+        for k, v in ch.params.items():
+            if isinstance(v, float) and not math.isfinite(v):
+                raise bad(f"channel {name!r}: header parameter {k!r} is {v}")
+
+
 @dataclass
 class AppearanceMap:
     """Poses + channels (see module docstring). ``meta`` is the file header as a model."""
@@ -462,6 +536,7 @@ class AppearanceMap:
                 method=ch.method,
                 params={k: v for k, v in ch.params.items()},
             )
+        _check_content(path, header, arrays)
         return cls(
             poses=poses,
             channels=channels,
@@ -526,7 +601,8 @@ def load_vectors(
     Files are decoded straight to grey (``cv2.IMREAD_GRAYSCALE``) by a thread pool
     (OpenCV releases the GIL; default 4 threads, at most 2 per core), in chunks written
     into one preallocated matrix (PNG decoding is most of the cost; see docs/results.md,
-    'Map build'). ``workers`` <= 1 or a single chunk: no pool. ``progress(done, total)`` is
+    'Map build'). An image of another size than the dataset's camera is a LinoLocError
+    naming the file (area averaging would hide it). ``workers`` <= 1 or a single chunk: no pool. ``progress(done, total)`` is
     called after every chunk. An exception in a worker cancels the chunks not yet started
     and is re-raised.
     """
@@ -535,9 +611,17 @@ def load_vectors(
     X = np.empty((n, w * h), dtype=np.float32)
     paths = [dataset.image_path(i) for i in range(n)]
 
+    cam = dataset.meta.camera
+
     def work(lo: int, hi: int) -> int:
         for i in range(lo, hi):
-            X[i] = to_vector(preprocess(Dataset.read_grey(paths[i]), method), (w, h))
+            img = Dataset.read_grey(paths[i])
+            if img.shape != (cam.height, cam.width):
+                raise LinoLocError(
+                    f"{paths[i]}: {img.shape[1]}x{img.shape[0]} pixels, the camera of the dataset "
+                    f"is {cam.width}x{cam.height}"
+                )
+            X[i] = to_vector(preprocess(img, method), (w, h))
         return hi - lo
 
     bounds = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
@@ -726,6 +810,7 @@ def build_map(
     w, h = _checked_map_settings(preprocess, method, size, dataset.meta.camera)
     virtual = virtual_setup(dataset.meta.camera, (w, h), virtual_offsets)  # checked before any image is read
     ds = _map_rows(dataset, condition, n_features, (w, h))
+    _check_poses(ds)
     unknown = [c for c in channels if c not in ("intensity", "disparity")]
     if unknown or "intensity" not in channels:
         raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
@@ -759,6 +844,20 @@ def _checked_map_settings(
     if not (0 < w <= cam.width and 0 < h <= cam.height):
         raise LinoLocError(f"map size {w}x{h} must be positive and at most the camera's {cam.width}x{cam.height}")
     return w, h
+
+
+def _check_poses(ds: Dataset) -> None:
+    """LinoLocError naming ``poses.csv`` and the line if a pose of ``ds`` is implausible
+    (:func:`lino_loc.dataset.pose_problem`) or their extent is
+    (:func:`lino_loc.dataset.extent_problem`): what a map's load would refuse."""
+    table = ds.root / POSES_FILE
+    for i, pose in enumerate(ds.poses):
+        msg = pose_problem(pose)
+        if msg is not None:
+            raise LinoLocError(f"{table}: line {ds.lines[i]}, {msg}")
+    msg = extent_problem(ds.poses)
+    if msg is not None:
+        raise LinoLocError(f"{table}: {msg}")
 
 
 def _map_rows(dataset: Dataset, condition: str | None, n_features: int, size: tuple[int, int]) -> Dataset:

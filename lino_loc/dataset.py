@@ -32,6 +32,10 @@ Usage::
 :meth:`Dataset.open` checks everything that is cheap (schema, version, every cell of
 ``poses.csv``, that every referenced file exists) and raises :class:`LinoLocError` with one
 line naming the file, row and field. Reading an unreadable image later raises the same.
+:func:`dataset_problems` checks the content (every file decoded at the camera's size,
+plausible poses in metres: :func:`pose_problem`, :func:`extent_problem`) and lists every
+problem; :func:`require_valid` raises with the first. ``lino-loc dataset check`` and
+``lino-loc map build`` use them.
 """
 
 from __future__ import annotations
@@ -42,7 +46,8 @@ import json
 import math
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -326,7 +331,8 @@ class Dataset:
     """A validated dataset folder (open with :meth:`open`).
 
     Attributes: ``root``, ``meta`` (:class:`DatasetMeta`), ``poses`` (N, 3) float64 camera
-    poses, ``conditions`` (list of str or None), ``stamps`` (N,) float64, NaN = none.
+    poses, ``conditions`` (list of str or None), ``stamps`` (N,) float64, NaN = none,
+    ``lines`` the line of ``poses.csv`` of each row (for messages).
     """
 
     def __init__(
@@ -337,12 +343,14 @@ class Dataset:
         files: dict[str, list[str | None]],
         conditions: list[str | None],
         stamps: np.ndarray,
+        lines: list[int] | None = None,
     ) -> None:
         self.root = root
         self.meta = meta
         self.poses = poses
         self.conditions = conditions
         self.stamps = stamps
+        self.lines = list(range(2, 2 + len(poses))) if lines is None else lines
         self._files = files
 
     # ----------------------------------------------------------------- opening
@@ -353,8 +361,8 @@ class Dataset:
         if not root.is_dir():
             raise LinoLocError(f"{root}: not a dataset folder (no such folder)")
         meta = cls._read_meta(root / META_FILE)
-        poses, files, conditions, stamps = cls._read_poses(root, root / POSES_FILE)
-        return cls(root, meta, poses, files, conditions, stamps)
+        poses, files, conditions, stamps, lines = cls._read_poses(root, root / POSES_FILE)
+        return cls(root, meta, poses, files, conditions, stamps, lines)
 
     @staticmethod
     def _read_meta(path: Path) -> DatasetMeta:
@@ -386,17 +394,19 @@ class Dataset:
     @staticmethod
     def _read_poses(
         root: Path, path: Path
-    ) -> tuple[np.ndarray, dict[str, list[str | None]], list[str | None], np.ndarray]:
+    ) -> tuple[np.ndarray, dict[str, list[str | None]], list[str | None], np.ndarray, list[int]]:
         """The pose table ``path``: poses (N, 3), the files of each column of
-        ``_FILE_COLUMNS`` (None where empty), the conditions and the stamps (nan where
-        empty). Blank rows are skipped; LinoLocError (naming the line) for a bad header or
-        row, a CSV syntax error, or no row at all."""
+        ``_FILE_COLUMNS`` (None where empty), the conditions, the stamps (nan where
+        empty) and the line of ``poses.csv`` each row came from. Blank rows are skipped;
+        LinoLocError (naming the line) for a bad header or row, a CSV syntax error, or no
+        row at all."""
         reader, header = _poses_header(path)
         idx = {c: header.index(c) for c in header}
         poses: list[tuple[float, float, float]] = []
         files: dict[str, list[str | None]] = {c: [] for c in _FILE_COLUMNS}
         conditions: list[str | None] = []
         stamps: list[float] = []
+        lines: list[int] = []
         line = 1
         try:
             for cells in reader:
@@ -409,6 +419,7 @@ class Dataset:
                     files[col].append(row_files[col])
                 conditions.append(cond)
                 stamps.append(stamp)
+                lines.append(line)
         except csv.Error as exc:
             raise LinoLocError(f"{path}: line {line + 1}: {exc}") from None
         if not poses:
@@ -418,6 +429,7 @@ class Dataset:
             files,
             conditions,
             np.asarray(stamps, dtype=np.float64),
+            lines,
         )
 
     # ----------------------------------------------------------------- access
@@ -499,8 +511,166 @@ class Dataset:
             {k: [v[j] for j in lst] for k, v in self._files.items()},
             [self.conditions[j] for j in lst],
             self.stamps[ix].copy(),
+            [self.lines[j] for j in lst],
         )
 
     def where(self, condition: str | None) -> Dataset:
         """Rows recorded under ``condition`` (may be empty)."""
         return self.subset([i for i, c in enumerate(self.conditions) if c == condition])
+
+
+# --------------------------------------------------------------------------- content checks
+#: A survey wider than this in x or y (metres) is refused: the buildings lino-loc maps are
+#: tens of metres across, and the filter's work and memory grow with the mapped area (a
+#: survey in millimetres, 1000x too wide, made ``lino-loc run`` take several GB). A campus
+#: larger than 1 km is several maps.
+MAX_EXTENT_M = 1000.0
+#: |x| or |y| above this (metres) is not a position: 10 000 km, so that projected
+#: coordinates (UTM northings up to 1e7 m) stay valid while 1e300 does not.
+MAX_ABS_POSITION_M = 1.0e7
+#: |theta| above this (radians, four turns either way) is not a heading in radians; a
+#: survey in degrees (0..350) is far beyond it.
+MAX_ABS_THETA_RAD = 8.0 * math.pi
+
+#: What each file column is decoded with and must decode to: (OpenCV flags, dtype, allowed
+#: channel counts with 0 = a 2-D array, what it is). Images keep their depth and colours but,
+#: as :meth:`Dataset.read_grey` does, follow a JPEG's EXIF orientation (which
+#: ``IMREAD_UNCHANGED`` ignores), so the size checked is the size read.
+_IMAGE_FLAGS = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
+_FILE_KINDS: dict[str, tuple[int, type, tuple[int, ...], str]] = {
+    "image": (_IMAGE_FLAGS, np.uint8, (0, 1, 3), "an 8-bit image"),
+    "right": (_IMAGE_FLAGS, np.uint8, (0, 1, 3), "an 8-bit image"),
+    "disparity": (cv2.IMREAD_UNCHANGED, np.uint16, (0,), "a 16-bit single-channel PNG"),
+    "depth": (cv2.IMREAD_UNCHANGED, np.uint16, (0,), "a 16-bit single-channel PNG"),
+}
+
+
+def pose_problem(pose: Sequence[float] | np.ndarray) -> str | None:
+    """Why the camera pose ``(x, y, theta)`` is not plausible in metres and radians
+    (``"field 'x': 1e+300 is not a position in metres (|x| > 1e+07)"``), or None. The
+    limits are :data:`MAX_ABS_POSITION_M` and :data:`MAX_ABS_THETA_RAD`; NaN and inf fail."""
+    for col, v, limit, unit in (
+        ("x", pose[0], MAX_ABS_POSITION_M, "a position in metres"),
+        ("y", pose[1], MAX_ABS_POSITION_M, "a position in metres"),
+        ("theta", pose[2], MAX_ABS_THETA_RAD, "a heading in radians"),
+    ):
+        v = float(v)
+        if not math.isfinite(v):
+            return f"field '{col}': not finite ({v!r})"
+        if abs(v) > limit:
+            hint = ": are the headings in degrees? theta is radians" if col == "theta" else ""
+            return f"field '{col}': {v:g} is not {unit} (|{col}| > {limit:g}){hint}"
+    return None
+
+
+def extent_problem(poses: np.ndarray) -> str | None:
+    """Why the positions of ``poses`` (N, 3) span an implausible area, or None: an extent
+    (max - min) above :data:`MAX_EXTENT_M` in x or y, with a question about the units
+    (``"extent 4200 x 3100 m: are the poses in millimetres? poses are metres ..."``). Rows
+    that are not finite are ignored (:func:`pose_problem` reports them)."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[:, :2]
+    p = p[np.isfinite(p).all(axis=1)]
+    if len(p) == 0:
+        return None
+    ex, ey = (float(v) for v in p.max(axis=0) - p.min(axis=0))
+    if max(ex, ey) <= MAX_EXTENT_M:
+        return None
+    return (
+        f"extent {ex:.0f} x {ey:.0f} m: are the poses in millimetres? poses are metres "
+        f"(a survey at most {MAX_EXTENT_M:.0f} m across)"
+    )
+
+
+def _file_problem(path: Path, kind: str, camera: CameraInfo) -> str | None:
+    """Why the file ``path`` of column ``kind`` is not what the dataset says (undecodable,
+    another pixel type, another size than ``camera``), or None. Decodes it in full."""
+    flags, dtype, channels, what = _FILE_KINDS[kind]
+    try:
+        raw = cv2.imread(str(path), flags)
+    except cv2.error:  # pragma: no cover - OpenCV reports most bad files as None
+        raw = None
+    if raw is None:
+        return f"cannot be decoded (not {what}, or corrupt)"
+    nch = 0 if raw.ndim == 2 else raw.shape[2]
+    if raw.dtype != dtype or nch not in channels:
+        return f"expected {what}, got {raw.dtype} {'x'.join(str(v) for v in raw.shape)}"
+    h, w = raw.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        return f"{w}x{h} pixels, the camera in {META_FILE} is {camera.width}x{camera.height}"
+    return None
+
+
+def _row_file_problems(ds: Dataset, i: int) -> list[str]:
+    """The problems of row ``i``'s files, one line each naming the file and the row."""
+    out = []
+    for kind in _FILE_COLUMNS:
+        path = ds.file_path(kind, i)
+        if path is None:
+            continue
+        msg = _file_problem(path, kind, ds.meta.camera)
+        if msg is not None:
+            out.append(f"{path}: {POSES_FILE} line {ds.lines[i]}, field '{kind}': {msg}")
+    return out
+
+
+def dataset_problems(
+    ds: Dataset,
+    *,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[str]:
+    """Every content problem of the opened dataset ``ds``, one line each; [] if none.
+
+    What :meth:`Dataset.open` does not check because it is not cheap: every pose is
+    plausible (:func:`pose_problem`), the survey's extent is (:func:`extent_problem`), and
+    every image, right image, disparity and depth file decodes (``_FILE_KINDS``) to the
+    pixel type its column needs and to the camera's size. Files are decoded by a thread
+    pool (OpenCV releases the GIL; default 4 threads, at most 2 per core; ``workers`` <= 1:
+    none). ``progress(done, total)`` is called as rows are checked. Lines name the file, the
+    line of ``poses.csv`` and the field. ``lino-loc dataset check`` and ``lino-loc map
+    build`` both use this (through :func:`require_valid`).
+    """
+    table = ds.root / POSES_FILE
+    problems = []
+    plausible = np.ones(len(ds), dtype=bool)
+    for i, pose in enumerate(ds.poses):
+        msg = pose_problem(pose)
+        if msg is not None:
+            problems.append(f"{table}: line {ds.lines[i]}, {msg}")
+            plausible[i] = False
+    msg = extent_problem(ds.poses[plausible])
+    if msg is not None:
+        problems.append(f"{table}: {msg}")
+    n = len(ds)
+    bounds = [(lo, min(lo + 64, n)) for lo in range(0, n, 64)]
+
+    def work(lo: int, hi: int) -> list[str]:
+        return [line for i in range(lo, hi) for line in _row_file_problems(ds, i)]
+
+    nw = workers if workers is not None else min(4, 2 * (os.cpu_count() or 1))
+    pool = ThreadPoolExecutor(max_workers=nw) if nw > 1 and len(bounds) > 1 else None
+    try:
+        results = pool.map(work, *zip(*bounds, strict=True)) if pool else (work(lo, hi) for lo, hi in bounds)
+        for (_, hi), lines in zip(bounds, results, strict=True):
+            problems.extend(lines)
+            if progress:
+                progress(hi, n)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    return problems
+
+
+def require_valid(
+    ds: Dataset, *, workers: int | None = None, progress: Callable[[int, int], None] | None = None
+) -> None:
+    """Raise :class:`LinoLocError` with the first of :func:`dataset_problems` (and how many
+    more there are) if there is any; the refusal ``lino-loc map build`` shares with
+    ``lino-loc dataset check``."""
+    problems = dataset_problems(ds, workers=workers, progress=progress)
+    if problems:
+        more = (
+            f" (and {len(problems) - 1} more; see `lino-loc dataset check {ds.root}`)"
+            if len(problems) > 1 else ""
+        )
+        raise LinoLocError(problems[0] + more)

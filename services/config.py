@@ -37,6 +37,7 @@ import json
 import math
 import os
 import re
+import stat
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
@@ -506,12 +507,63 @@ def load_config(path: str | Path | None = None) -> ServiceConfig:
 
 
 def check_config(path: str | Path) -> list[str]:
-    """Every problem of the configuration file (plus environment), one line each; [] if valid."""
+    """Every problem of the configuration file (plus environment), one line each; [] if valid.
+
+    A valid configuration is then checked against the file system (:func:`file_problems`):
+    the files it names must exist. ``lino-loc run`` (:func:`load_config`) does not do this
+    (the daemon reports a missing map itself, and the simulated robot builds its map).
+    """
     try:
-        load_config(path)
+        cfg = load_config(path)
     except ConfigError as exc:
         return exc.problems
-    return []
+    return file_problems(cfg, str(path))
+
+
+def _path_problem(path: Path, kind: Literal["file", "parent"]) -> str | None:
+    """Why ``path`` cannot serve: for ``"file"``, it must be a readable file; for
+    ``"parent"``, its folder must exist or be creatable (its nearest existing ancestor a
+    writable folder). None if fine. A path this user may not look at is a problem too (the
+    check cannot vouch for it)."""
+    target = path if kind == "file" else path.parent
+    try:
+        st = target.stat()
+    except FileNotFoundError:
+        if kind == "file":
+            return f"{path}: no such file"
+        anc = next((a for a in target.parents if a.exists()), None)
+        if anc is None or not anc.is_dir() or not os.access(anc, os.W_OK | os.X_OK):
+            return f"folder {target} does not exist and cannot be created ({anc} is not a writable folder)"
+        return None
+    except PermissionError:
+        return f"{target}: cannot be checked by this user (permission denied); run the check as the service's user"
+    except OSError as exc:
+        return f"{target}: {exc.strerror or exc}"
+    if kind == "file":
+        if stat.S_ISDIR(st.st_mode):
+            return f"{path}: is a folder, not a file"
+        if not os.access(path, os.R_OK):
+            return f"{path}: not readable by this user"
+    elif not stat.S_ISDIR(st.st_mode):
+        return f"{target}: not a folder (the folder of {path.name})"
+    return None
+
+
+def file_problems(cfg: ServiceConfig, label: str) -> list[str]:
+    """The files ``cfg`` names that cannot serve, one line each as ``LABEL: key: path: why``:
+    ``map.path`` must be a readable file unless ``map.build`` is set (the simulated robot
+    builds a missing map); ``persistence.state_file``'s folder must exist or be creatable.
+    Paths relative to the working directory, as the service reads them."""
+    named: list[tuple[str, Path, Literal["file", "parent"]]] = []
+    if cfg.map.build is None:
+        named.append(("map.path", cfg.map.path, "file"))
+    named.append(("persistence.state_file", cfg.persistence.state_file, "parent"))
+    problems = []
+    for key, path, kind in named:
+        msg = _path_problem(Path(path), kind)
+        if msg is not None:
+            problems.append(f"{label}: {key}: {msg}")
+    return problems
 
 
 # --------------------------------------------------------------------------------------------

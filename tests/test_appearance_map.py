@@ -242,3 +242,81 @@ def test_bad_header_and_missing_array(map_file: Path, tmp_path: Path) -> None:
         h["sha256"] = _checksum(arrays)
 
     _fails(_rewrite(map_file, tmp_path / "m.npz", header_fn=drop_and_fix, array_fn=drop), "missing array 'mean'")
+
+
+# ------------------------------------------------------------------ content, not only the checksum
+
+
+def _resigned(map_file: Path, dst: Path, array_fn=None, header_fn=None) -> Path:
+    """The map with its arrays changed by ``array_fn`` and the checksum recomputed (what a
+    careless or hostile tool would write)."""
+    from lino_loc.appearance_map import _checksum
+
+    def fix(h):
+        if header_fn:
+            header_fn(h)
+        with np.load(map_file, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files if k != "header"}
+        if array_fn:
+            array_fn(arrays)
+        h["sha256"] = _checksum(arrays)
+
+    return _rewrite(map_file, dst, header_fn=fix, array_fn=array_fn)
+
+
+def _poses_scaled(arrays, row: int | None = None, value: float = 0.0, scale: float = 1.0) -> None:
+    p = arrays["poses"].copy()
+    p[:, :2] *= scale
+    if row is not None:
+        p[row, 0] = value
+    arrays["poses"] = p
+
+
+@pytest.mark.parametrize(
+    "edit, needles",
+    [
+        (lambda a: _poses_scaled(a, 7, 1e300), ("'poses' row 7: field 'x': 1e+300 is not a position in metres",)),
+        (lambda a: _poses_scaled(a, 3, np.nan), ("'poses' holds nan (row 3): not finite",)),
+        (lambda a: _poses_scaled(a, 2, -np.inf), ("'poses' holds -inf (row 2): not finite",)),
+        (lambda a: _poses_scaled(a, scale=1000.0), ("'poses': extent 1900 x 0 m: are the poses in millimetres?",)),
+        (lambda a: a["intensity/features"].__setitem__((5, 2), np.nan), ("'intensity/features' holds nan (row 5)",)),
+        (lambda a: a.update({"intensity/mean": a["intensity/mean"].astype(np.float64) * 0 + 1e300}),
+         ("'intensity/mean' holds 1e+300 (row 0): beyond +-1e+09",)),
+        (lambda a: a["intensity/components"].__setitem__((1, 4), np.inf), ("'intensity/components' holds inf (row 1)",)),
+        (lambda a: a["intensity/explained_variance"].__setitem__(0, -1.0),
+         ("'intensity/explained_variance' holds -1 (row 0): negative",)),
+    ],
+)
+def test_resigned_implausible_content_is_refused(map_file: Path, tmp_path: Path, edit, needles) -> None:
+    bad = _resigned(map_file, tmp_path / "bad.npz", array_fn=edit)
+    _fails(bad, "implausible map content", *needles)
+
+
+def test_non_finite_header_parameter_is_refused(map_file: Path, tmp_path: Path) -> None:
+    def nan_param(h):
+        h["channels"]["intensity"]["params"]["total_variance"] = float("nan")
+
+    # the header is outside the checksum: no re-signing needed
+    _fails(_rewrite(map_file, tmp_path / "h.npz", header_fn=nan_param),
+           "implausible map content", "'total_variance' is nan")
+
+
+def test_build_refuses_an_image_of_another_size(dataset: Dataset, tmp_path: Path) -> None:
+    root = tmp_path / "odd"
+    rng = np.random.default_rng(4)
+    with DatasetWriter(root, DatasetMeta(name="odd", camera=dataset.meta.camera)) as w:
+        for i in range(8):
+            w.add(_scene(0.1 * i, 0.0, rng), (0.1 * i, 0.0, 0.0))
+    cv2.imwrite(str(root / "images" / "000003.png"), np.zeros((H, W + 8), np.uint8))
+    with pytest.raises(LinoLocError, match=rf"000003.png: {W + 8}x{H} pixels, the camera of the dataset is {W}x{H}"):
+        build_map(Dataset.open(root), n_features=3, size=SIZE, workers=1)
+
+
+def test_build_refuses_implausible_poses(dataset: Dataset, tmp_path: Path) -> None:
+    root = tmp_path / "far"
+    rng = np.random.default_rng(5)
+    with DatasetWriter(root, DatasetMeta(name="far", camera=dataset.meta.camera)) as w:
+        for i in range(8):
+            w.add(_scene(0.1 * i, 0.0, rng), (300.0 * i, 0.0, 0.0))
+    with pytest.raises(LinoLocError, match=r"poses.csv: extent 2100 x 0 m: are the poses in millimetres"):
+        build_map(Dataset.open(root), n_features=3, size=SIZE)

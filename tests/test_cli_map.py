@@ -102,3 +102,66 @@ def test_bad_arguments_exit_2(dataset: Path, tmp_path: Path, capsys: pytest.Capt
         code, _, err = _run(capsys, "map", "build", str(dataset), "--out", out_map, *extra)
         assert code == 2, extra
         assert len(err.strip().splitlines()) == 1, err
+
+
+def _set_x(dataset: Path, line: int, value: str) -> None:
+    lines = (dataset / "poses.csv").read_text().splitlines()
+    cells = lines[line - 1].split(",")
+    cells[1] = value
+    lines[line - 1] = ",".join(cells)
+    (dataset / "poses.csv").write_text("\n".join(lines) + "\n")
+
+
+def _refused(capsys: pytest.CaptureFixture[str], dataset: Path, out_map: Path, *needles: str) -> str:
+    code, out, err = _run(capsys, "map", "build", str(dataset), "--out", str(out_map), "--features", "3")
+    assert code == 2 and out == "" and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    assert not out_map.exists()
+    return err
+
+
+def test_build_refuses_what_dataset_check_refuses(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import cv2
+
+    from lino_loc.dataset import Dataset, dataset_problems
+
+    _set_x(dataset, 4, "1e300")
+    _refused(capsys, dataset, tmp_path / "a.npz", "poses.csv: line 4, field 'x': 1e+300 is not a position in metres")
+    _set_x(dataset, 4, "1.5")
+    cv2.imwrite(str(dataset / "images" / "000005.png"), np.zeros((36, 48), np.uint8))
+    (dataset / "images" / "000007.png").write_bytes(b"not a png")
+    err = _refused(capsys, dataset, tmp_path / "b.npz", "000005.png: poses.csv line 7, field 'image': 48x36 pixels",
+                   "(and 1 more; see `lino-loc dataset check")
+    assert err.split("error: ", 1)[1].startswith(dataset_problems(Dataset.open(dataset))[0])
+
+
+def test_build_refuses_a_survey_in_millimetres(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rng = np.random.default_rng(1)
+    cam = CameraInfo(width=24, height=18, fx=20.0, fy=20.0, cx=12.0, cy=9.0)
+    root = tmp_path / "mm"
+    with DatasetWriter(root, DatasetMeta(name="mm", camera=cam)) as w:
+        for i in range(12):
+            w.add(rng.integers(0, 256, (18, 24), dtype=np.uint8), (1000.0 * 0.4 * i, 1000.0 * 0.1 * (i % 3), 0.0))
+    _refused(capsys, root, tmp_path / "m.npz", "extent 4400 x 200 m: are the poses in millimetres? poses are metres")
+
+
+def test_dataset_check_lists_every_problem(dataset: Path, monkeypatch: pytest.MonkeyPatch,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    import cv2
+
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("services.commands.dataset_cmd",))
+    code, out, err = _run(capsys, "dataset", "check", "--json", str(dataset))
+    assert code == 0 and err == "" and json.loads(out)["ok"] is True and json.loads(out)["problems"] == []
+    _set_x(dataset, 2, "1e300")
+    cv2.imwrite(str(dataset / "images" / "000005.png"), np.zeros((36, 48), np.uint8))
+    (dataset / "images" / "000007.png").write_bytes(b"")
+    code, out, err = _run(capsys, "dataset", "check", "--json", str(dataset))
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 3 and "Traceback" not in err
+    assert "line 2, field 'x'" in lines[0] and "000005.png" in lines[1] and "000007.png" in lines[2]
+    summary = json.loads(out)
+    assert summary["ok"] is False and summary["problems"] == lines
+    code, out, err = _run(capsys, "dataset", "check", str(dataset))
+    assert code == 2 and err.strip().splitlines() == lines and "problems" not in json.loads(out)

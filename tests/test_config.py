@@ -63,8 +63,17 @@ def test_defaults_are_the_real_robot():
     assert STATUS_PERIOD_S == 1.0
 
 
+@pytest.fixture
+def robot_files(tmp_path, monkeypatch):
+    """The files config/lino.toml names (a map, the state folder), made in tmp_path and named
+    through the environment, as they are on an installed robot."""
+    (tmp_path / "map.npz").write_bytes(b"PK")
+    monkeypatch.setenv("LINO_LOC__MAP__PATH", str(tmp_path / "map.npz"))
+    monkeypatch.setenv("LINO_LOC__PERSISTENCE__STATE_FILE", str(tmp_path / "state" / "state.json"))
+
+
 @pytest.mark.parametrize("path", [LINO, SIM])
-def test_shipped_files_pass_config_check(path, capsys):
+def test_shipped_files_pass_config_check(path, capsys, robot_files):
     assert check_config(path) == []
     assert _cli(["config", "check", str(path)]) == 0
     assert capsys.readouterr().out.strip() == f"{path}: ok"
@@ -145,7 +154,7 @@ def test_check_reports_every_error_with_its_field_path(tmp_path, capsys):
     assert out == problems
 
 
-def test_check_json_output(tmp_path, capsys):
+def test_check_json_output(tmp_path, capsys, robot_files):
     good, bad = LINO, _write(tmp_path, "[logging]\nlevel = 3\n")
     assert _cli(["config", "check", "--json", str(good), str(bad)]) == 2
     obj = json.loads(capsys.readouterr().out)
@@ -185,6 +194,54 @@ def test_cross_field_checks(tmp_path):
     p = _write(tmp_path, "[devices.head]\npan_id = 2\ntilt_id = 2\n", "d.toml")
     (msg,) = check_config(p)
     assert "pan_id and tilt_id must differ" in msg
+
+
+# ------------------------------------------------------------------ the files it names
+
+
+def _files_config(tmp_path: Path, map_path: Path, state_file: Path, extra: str = "") -> Path:
+    return _write(tmp_path, f'[map]\npath = "{map_path}"\n[persistence]\nstate_file = "{state_file}"\n{extra}')
+
+
+def test_config_check_names_a_missing_map(tmp_path, capsys):
+    missing = tmp_path / "maps" / "office.npz"
+    path = _files_config(tmp_path, missing, tmp_path / "state" / "s.json")
+    problems = check_config(path)
+    assert problems == [f"{path}: map.path: {missing}: no such file"]
+    assert _cli(["config", "check", str(path)]) == 2
+    assert capsys.readouterr().out.splitlines() == problems
+    # load_config (what `lino-loc run` reads) does not look at the file system
+    assert load_config(path).map.path == missing
+
+
+def test_config_check_map_that_is_a_folder_and_the_robot_default(tmp_path, monkeypatch):
+    (tmp_path / "state").mkdir()
+    path = _files_config(tmp_path, tmp_path, tmp_path / "state" / "s.json")
+    assert check_config(path) == [f"{path}: map.path: {tmp_path}: is a folder, not a file"]
+    monkeypatch.setenv("LINO_LOC__MAP__PATH", str(tmp_path / "nope.npz"))
+    monkeypatch.setenv("LINO_LOC__PERSISTENCE__STATE_FILE", str(tmp_path / "state" / "s.json"))
+    assert check_config(LINO) == [f"{LINO}: map.path: {tmp_path / 'nope.npz'}: no such file"]
+
+
+def test_config_check_a_map_to_build_need_not_exist(tmp_path):
+    text = SIM.read_text().replace("~/.cache/lino-loc/maps/", f"{tmp_path}/maps/")
+    text = text.replace("~/.local/state/lino-loc/", f"{tmp_path}/state/")
+    path = _write(tmp_path, text, "sim.toml")
+    assert f"{tmp_path}/maps/" in text and check_config(path) == []
+
+
+def test_config_check_state_folder_must_be_creatable(tmp_path):
+    (tmp_path / "map.npz").write_bytes(b"PK")
+    (tmp_path / "plain").write_text("a file, not a folder")
+    deep = tmp_path / "a" / "b" / "s.json"  # does not exist, can be created
+    assert check_config(_files_config(tmp_path, tmp_path / "map.npz", deep)) == []
+    under_file = tmp_path / "plain" / "s.json"
+    path = _files_config(tmp_path, tmp_path / "map.npz", under_file, )
+    (msg,) = check_config(path)
+    assert msg.startswith(f"{path}: persistence.state_file: {tmp_path / 'plain'}: not a folder")
+    path = _files_config(tmp_path, tmp_path / "missing.npz", tmp_path / "plain" / "x" / "s.json")
+    problems = check_config(path)
+    assert [p.split(": ")[1] for p in problems] == ["map.path", "persistence.state_file"]
 
 
 def test_load_config_raises_one_line_summary(tmp_path):

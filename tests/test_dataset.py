@@ -10,12 +10,17 @@ import numpy as np
 import pytest
 
 from lino_loc.dataset import (
+    MAX_EXTENT_M,
     CameraInfo,
     Dataset,
     DatasetMeta,
     DatasetWriter,
+    dataset_problems,
     decode_scaled_u16,
     encode_scaled_u16,
+    extent_problem,
+    pose_problem,
+    require_valid,
 )
 from lino_loc.errors import LinoLocError
 
@@ -244,3 +249,111 @@ def test_unreadable_image(tmp_path: Path) -> None:
     ds = Dataset.open(root)  # existence is checked up front; decoding when read
     _one_line_error(lambda: ds.image(1), "000001.png", "unreadable")
     np.testing.assert_equal(ds.image(0).shape, (H, W))
+
+
+# ------------------------------------------------------------------ content checks
+
+
+def _set_cell(root: Path, line: int, col: str, value: str) -> None:
+    """Set column ``col`` of line ``line`` (1 = header) of poses.csv."""
+
+    def edit(lines):
+        header = lines[0].split(",")
+        cells = lines[line - 1].split(",")
+        cells[header.index(col)] = value
+        return lines[: line - 1] + [",".join(cells)] + lines[line:]
+
+    _edit_csv(root, edit)
+
+
+def _one_problem(root: Path, *needles: str) -> str:
+    problems = dataset_problems(Dataset.open(root), workers=1)
+    assert len(problems) == 1, problems
+    (msg,) = problems
+    assert "\n" not in msg
+    for needle in needles:
+        assert needle in msg, f"{needle!r} not in {msg!r}"
+    with pytest.raises(LinoLocError) as info:
+        require_valid(Dataset.open(root))
+    assert str(info.value) == msg
+    return msg
+
+
+def test_a_good_dataset_has_no_problems(tmp_path: Path) -> None:
+    root = tmp_path / "ds"
+    rng = np.random.default_rng(1)
+    with DatasetWriter(root, _meta()) as w:
+        for i in range(70):  # more than one chunk of 64 rows: the thread pool runs
+            w.add(rng.integers(0, 256, (H, W), dtype=np.uint8), (0.1 * i, 0.0, 0.0),
+                  depth=rng.uniform(0.5, 3.0, (H, W)), right=rng.integers(0, 256, (H, W), dtype=np.uint8))
+    ds = Dataset.open(root)
+    seen = []
+    assert dataset_problems(ds, progress=lambda d, n: seen.append((d, n))) == []
+    assert seen[-1] == (70, 70) and len(seen) == 2
+    assert dataset_problems(ds, workers=1) == []
+    require_valid(ds)
+
+
+def test_undecodable_image_is_named_with_its_row(tmp_path: Path) -> None:
+    root = _write(tmp_path / "ds")
+    (root / "images" / "000001.png").write_bytes(b"\x89PNG\r\n\x1a\n but truncated")
+    _one_problem(root, str(root / "images" / "000001.png"), "poses.csv line 3", "field 'image'", "cannot be decoded")
+
+
+def test_image_of_another_size(tmp_path: Path) -> None:
+    root = _write(tmp_path / "ds")
+    cv2.imwrite(str(root / "images" / "000002.png"), np.zeros((H + 4, W * 2), np.uint8))
+    _one_problem(root, "000002.png", "line 4", "field 'image'", f"{2 * W}x{H + 4} pixels",
+                 f"the camera in dataset.json is {W}x{H}")
+
+
+def test_every_problem_is_one_line(tmp_path: Path) -> None:
+    root = tmp_path / "ds"
+    rng = np.random.default_rng(2)
+    with DatasetWriter(root, _meta()) as w:
+        for i in range(3):
+            w.add(rng.integers(0, 256, (H, W), dtype=np.uint8), (0.5 * i, 0.0, 0.0),
+                  depth=rng.uniform(0.5, 3.0, (H, W)))
+    cv2.imwrite(str(root / "depth" / "000000.png"), np.zeros((H, W), np.uint8))  # 8-bit depth
+    (root / "images" / "000002.png").write_bytes(b"")
+    _set_cell(root, 3, "y", "1e300")
+    problems = dataset_problems(Dataset.open(root))
+    assert len(problems) == 3, problems
+    assert problems[0].startswith(f"{root / 'poses.csv'}: line 3, field 'y': 1e+300 is not a position in metres")
+    assert problems[1].startswith(f"{root / 'depth' / '000000.png'}: poses.csv line 2, field 'depth': "
+                                  "expected a 16-bit single-channel PNG, got uint8")
+    assert problems[2].startswith(f"{root / 'images' / '000002.png'}: poses.csv line 4, field 'image': cannot")
+    with pytest.raises(LinoLocError, match=r"\(and 2 more; see `lino-loc dataset check "):
+        require_valid(Dataset.open(root))
+
+
+def test_pose_of_1e300(tmp_path: Path) -> None:
+    root = _write(tmp_path / "ds")
+    _set_cell(root, 3, "x", "1e300")
+    Dataset.open(root)  # finite: the structure is fine
+    _one_problem(root, "poses.csv: line 3, field 'x': 1e+300 is not a position in metres (|x| > 1e+07)")
+
+
+def test_survey_in_millimetres(tmp_path: Path) -> None:
+    root = tmp_path / "mm"
+    rng = np.random.default_rng(3)
+    with DatasetWriter(root, _meta()) as w:
+        for x, y in ((0.0, 0.0), (4.2, 0.0), (4.2, 3.1), (0.0, 3.1), (2.0, 1.0)):
+            w.add(rng.integers(0, 256, (H, W), dtype=np.uint8), (1000 * x, 1000 * y, 0.0))
+    _one_problem(root, "poses.csv: extent 4200 x 3100 m: are the poses in millimetres? poses are metres")
+
+
+def test_headings_in_degrees(tmp_path: Path) -> None:
+    root = _write(tmp_path / "ds")
+    _set_cell(root, 5, "theta", "345")
+    _one_problem(root, "line 5, field 'theta': 345 is not a heading in radians", "in degrees?")
+
+
+def test_pose_and_extent_rules() -> None:
+    assert pose_problem((1e7, -1e7, 8 * np.pi)) is None
+    assert "field 'y'" in pose_problem((0.0, np.inf, 0.0))
+    assert "not finite" in pose_problem((np.nan, 0.0, 0.0))
+    assert extent_problem(np.array([[0.0, 0.0, 0.0], [MAX_EXTENT_M, 0.0, 0.0]])) is None
+    assert "extent 1001 x 0 m" in extent_problem(np.array([[0.0, 0.0, 0.0], [MAX_EXTENT_M + 1, 0.0, 0.0]]))
+    # UTM-like coordinates: large but a small survey
+    assert extent_problem(np.array([[5e5, 5.2e6, 0.0], [5e5 + 30, 5.2e6 + 20, 0.0]])) is None

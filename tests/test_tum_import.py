@@ -82,3 +82,17 @@ def test_refuses_non_empty_output(tmp_path):
     with pytest.raises(LinoLocError, match="not empty"):
         import_tum(seq, tmp_path / "ds")
     assert (tmp_path / "ds" / "keep.txt").exists()
+
+
+def test_cli_import_refuses_a_frame_of_another_size(tmp_path, capsys, monkeypatch):
+    import services.cli as cli
+
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("services.commands.dataset_cmd",))
+    seq = tmp_path / "seq"
+    _write_sequence(seq)
+    assert cli.main(["dataset", "import-tum", str(seq), "--out", str(tmp_path / "ok")]) == 0
+    capsys.readouterr()
+    cv2.imwrite(str(seq / "rgb" / "100.500000.png"), np.full((12, 16, 3), 100, np.uint8))
+    assert cli.main(["dataset", "import-tum", str(seq), "--out", str(tmp_path / "odd")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "100.500000.png: poses.csv line 3, field 'image': 16x12 pixels" in err[0], err

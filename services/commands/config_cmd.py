@@ -3,7 +3,9 @@
 - ``lino-loc config check FILE...``: every problem, one line each, as
   ``FILE: section.field: message`` (environment overrides included); exit 2 if any, else
   ``FILE: ok`` and exit 0. A key that is no longer a setting, or was renamed
-  (``services.config.RETIRED_KEYS``), is one such line naming its new key.
+  (``services.config.RETIRED_KEYS``), is one such line naming its new key. A valid file is
+  then checked against the file system (``services.config.file_problems``): a missing map,
+  a state folder that cannot be created, ... are lines ``FILE: key: path: why``.
 - ``lino-loc config show [--config FILE] [--json]``: the effective configuration (defaults,
   then FILE, then ``LINO_LOC__*`` variables) as TOML, or as one JSON object.
 - ``lino-loc config schema``: the JSON Schema of the configuration (for editors).
@@ -16,17 +18,20 @@ import json
 import os
 import sys
 
-from services.config import ConfigError, ServiceConfig, config_as_dict, load_config, to_toml
+from services.config import (
+    ConfigError,
+    ServiceConfig,
+    check_config,
+    config_as_dict,
+    load_config,
+    to_toml,
+)
 
 
 def _check(args: argparse.Namespace) -> int:
     results = {}
     for path in args.files:
-        try:
-            load_config(path)
-            results[path] = []
-        except ConfigError as exc:
-            results[path] = exc.problems
+        results[path] = check_config(path)
     bad = any(results.values())
     if args.json:
         print(json.dumps({"ok": not bad, "files": {p: {"ok": not e, "errors": e} for p, e in results.items()}}))

@@ -1,4 +1,13 @@
-"""`lino-loc dataset ...`: import and check dataset folders (the format: :mod:`lino_loc.dataset`)."""
+"""`lino-loc dataset ...`: import and check dataset folders (the format: :mod:`lino_loc.dataset`).
+
+- ``lino-loc dataset check DATASET [--json]``: the structure (:meth:`Dataset.open`), then the
+  content (:func:`lino_loc.dataset.dataset_problems`: plausible poses and extent, every file
+  decoded at the camera's size). Every problem is one line on stderr naming the file, the
+  line of ``poses.csv`` and the field; exit 2 if any. The summary goes to stdout (with
+  ``ok``, and with ``--json`` the list ``problems`` too).
+- ``lino-loc dataset import-tum SEQUENCE --out DATASET``: the converted folder passes the
+  same checks, or the command fails with the first problem.
+"""
 
 from __future__ import annotations
 
@@ -6,13 +15,18 @@ import argparse
 import json
 import sys
 
-from lino_loc.dataset import Dataset
+from lino_loc.dataset import Dataset, dataset_problems, require_valid
 from lino_loc.tum_import import TUM_INTRINSICS, import_tum
+from services.progress import Progress
 
 
 def _import_tum(args: argparse.Namespace) -> int:
     report = import_tum(args.sequence, args.out, camera=args.camera, overwrite=args.overwrite)
-    Dataset.open(args.out)  # the result must pass the same validation as any dataset
+    bar = Progress("dataset check")
+    try:  # the result must pass the same validation as any dataset
+        require_valid(Dataset.open(args.out), progress=bar.update)
+    finally:
+        bar.close()
     print(
         f"wrote {args.out}: {report.frames} frames "
         f"(skipped {report.skipped_no_groundtruth} outside the ground truth, "
@@ -24,7 +38,15 @@ def _import_tum(args: argparse.Namespace) -> int:
 
 def _check(args: argparse.Namespace) -> int:
     ds = Dataset.open(args.dataset)
+    bar = Progress("dataset check")
+    try:
+        problems = dataset_problems(ds, progress=bar.update)
+    finally:
+        bar.close()
+    for line in problems:
+        print(line, file=sys.stderr)
     summary = {
+        "ok": not problems,
         "name": ds.meta.name,
         "frames": len(ds),
         "conditions": sorted({c for c in ds.conditions if c}),
@@ -32,8 +54,10 @@ def _check(args: argparse.Namespace) -> int:
         "depth": ds.has_depth,
         "disparity": ds.has_disparity,
     }
+    if args.json:
+        summary["problems"] = problems
     print(json.dumps(summary, indent=None if args.json else 2))
-    return 0
+    return 2 if problems else 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:

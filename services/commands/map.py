@@ -7,6 +7,9 @@
     lino-loc map info MAP [--json]
 
 A malformed dataset folder or a bad map file is a user error: one line on stderr, exit 2.
+``map build`` refuses what ``lino-loc dataset check`` refuses (the same
+:func:`lino_loc.dataset.require_valid`, run before any PCA): the first problem, and how many
+more there are.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import sys
 import time
 
 from lino_loc.appearance_map import DEFAULT_FEATURES, DEFAULT_SIZE, AppearanceMap, build_map
-from lino_loc.dataset import Dataset
+from lino_loc.dataset import Dataset, require_valid
 from lino_loc.pca import PCA_METHODS
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from lino_loc.virtual_views import offsets
@@ -59,6 +62,11 @@ def _build(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     ds = Dataset.open(args.dataset)
     virtual = None if args.virtual_headings == 1 else offsets(math.radians(args.virtual_step), args.virtual_headings)
+    bar = Progress("dataset check")
+    try:
+        require_valid(ds, progress=bar.update)
+    finally:
+        bar.close()
     bar = Progress("map build")
     try:
         amap = build_map(
