@@ -217,3 +217,97 @@ def test_save_state_needs_a_tracking_estimate(tmp_path) -> None:  # noqa: ANN001
     assert isinstance(r, SaveStateReply) and r.path == str(tmp_path / "state.json")
     saved = load_state(tmp_path / "state.json")
     assert saved is not None and saved.map_checksum == "sum" and saved.pose.x == 1.0
+
+
+# ------------------------------------------------------------------ frame size limit
+def _rss_mb() -> float:
+    for line in open("/proc/self/status", encoding="ascii"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def _recv_exactly(s: Any, n: int) -> bytes:
+    out = b""
+    while len(out) < n:
+        got = s.recv(n - len(out))
+        assert got, "the server closed the connection during the handshake"
+        out += got
+    return out
+
+
+def _announce_huge_frame(endpoint: str, announced: int, send_mb: int) -> tuple[int, bool]:
+    """A raw TCP client speaking ZMTP 3.0 (NULL mechanism, as a REQ): greeting, READY, the
+    empty delimiter, then a frame header announcing ``announced`` bytes and up to
+    ``send_mb`` MB of its body. Returns (bytes of the body sent, connection closed by the
+    server)."""
+    import socket
+    import struct
+
+    host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
+    s = socket.create_connection((host, int(port)), timeout=5)
+    try:
+        s.sendall(b"\xff" + b"\x00" * 8 + b"\x7f" + b"\x03\x00" + b"NULL".ljust(20, b"\x00") + b"\x00" * 32)
+        _recv_exactly(s, 64)  # the server's greeting
+        prop = b"\x0bSocket-Type" + struct.pack(">I", 3) + b"REQ"
+        body = b"\x05READY" + prop
+        s.sendall(bytes([0x04, len(body)]) + body)
+        _recv_exactly(s, _recv_exactly(s, 2)[1])  # the server's READY (a short command)
+        s.sendall(b"\x01\x00")  # the REQ envelope's empty delimiter (more follows)
+        s.sendall(b"\x02" + struct.pack(">Q", announced))  # last frame, long size
+        chunk = b"\x00" * (1 << 20)
+        sent = 0
+        s.settimeout(2.0)
+        try:
+            for _ in range(send_mb):
+                s.sendall(chunk)
+                sent += len(chunk)
+            s.settimeout(1.0)
+            closed = s.recv(1) == b""
+        except (BrokenPipeError, ConnectionResetError):
+            closed = True
+        except TimeoutError:
+            closed = False
+        return sent, closed
+    finally:
+        s.close()
+
+
+def test_a_200_mb_frame_announcement_is_dropped_without_memory_growth() -> None:
+    from services.control import CONTROL_MAX_FRAME_BYTES
+
+    assert CONTROL_MAX_FRAME_BYTES <= 1 << 20
+    ctx = zmq.Context()
+    server = ControlServer(ctx, "tcp://127.0.0.1:*", lambda req: PingReply(stamp=1.0))
+    endpoint = server._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    server.start()
+    try:
+        before = _rss_mb()
+        for _ in range(3):
+            sent, closed = _announce_huge_frame(endpoint, 200 * 1024 * 1024, send_mb=40)
+            assert closed and sent < 40 * (1 << 20), "the server kept reading a 200 MB frame"
+        assert _rss_mb() - before < 10.0
+        req = ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.setsockopt(zmq.RCVTIMEO, 5000)
+        req.connect(endpoint)
+        req.send(b'{"cmd": "ping"}')  # and it still serves
+        assert json.loads(req.recv())["cmd"] == "ping"
+        req.close(0)
+    finally:
+        server.stop()
+        ctx.term()
+
+
+def test_the_raw_client_does_reach_a_socket_without_the_limit() -> None:
+    """The test above is not vacuous: a REP socket without ZMQ_MAXMSGSIZE takes the body."""
+    ctx = zmq.Context()
+    rep = ctx.socket(zmq.REP)
+    rep.setsockopt(zmq.LINGER, 0)
+    rep.bind("tcp://127.0.0.1:*")
+    try:
+        sent, closed = _announce_huge_frame(rep.getsockopt(zmq.LAST_ENDPOINT).decode(), 200 * 1024 * 1024, 8)
+        assert sent == 8 * (1 << 20) and not closed
+    finally:
+        rep.close(0)
+        ctx.term()
