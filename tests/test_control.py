@@ -311,3 +311,56 @@ def test_the_raw_client_does_reach_a_socket_without_the_limit() -> None:
     finally:
         rep.close(0)
         ctx.term()
+
+
+_FLOOD_CLIENT = r"""
+import sys, time, zmq
+ctx = zmq.Context()
+s = ctx.socket(zmq.DEALER)
+s.setsockopt(zmq.SNDHWM, 0)
+s.setsockopt(zmq.LINGER, 0)
+s.connect(sys.argv[1])
+frame = b'{"cmd": "ping", "v": 1}'.ljust(60 * 1024)
+for _ in range(int(sys.argv[2])):
+    s.send_multipart([b"", frame])  # the REQ envelope: empty delimiter, then the request
+print("sent", flush=True)
+time.sleep(float(sys.argv[3]))
+"""
+
+
+def test_a_client_that_floods_requests_is_held_back_not_buffered() -> None:
+    """2,000 requests of 60 KiB (120 MB) sent without reading a reply, to a server whose
+    handler is slow: what the daemon queues for that connection stays within CONTROL_RCVHWM
+    requests (the rest waits in the client and in TCP), so its memory barely moves."""
+    import subprocess
+    import sys
+
+    from services.control import CONTROL_RCVHWM
+
+    assert CONTROL_RCVHWM <= 16
+    ctx = zmq.Context()
+
+    def slow(req: Any) -> Any:
+        time.sleep(0.005)
+        return PingReply(stamp=1.0)
+
+    server = ControlServer(ctx, "tcp://127.0.0.1:*", slow)
+    endpoint = server._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    server.start()
+    before = _rss_mb()
+    client = subprocess.Popen(
+        [sys.executable, "-c", _FLOOD_CLIENT, endpoint, "2000", "3"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert client.stdout is not None and client.stdout.readline().strip() == "sent"
+        peak = before
+        for _ in range(20):
+            time.sleep(0.1)
+            peak = max(peak, _rss_mb())
+        assert server.requests > 0
+        assert peak - before < 20.0, f"the server buffered {peak - before:.0f} MB of queued requests"
+    finally:
+        client.kill()
+        client.wait(5)
+        server.stop()
+        ctx.term()
