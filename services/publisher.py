@@ -89,6 +89,12 @@ class RateLimiter:
         return False
 
 
+#: Largest frame a subscriber may send (``ZMQ_MAXMSGSIZE`` on the XPUB socket). Subscribers
+#: send only subscriptions, topic prefixes (the longest topic, ``particles``, is 9 bytes); a
+#: frame announced larger closes that subscriber's connection before anything is allocated.
+PUB_MAX_FRAME_BYTES = 4096
+
+
 class Publisher:
     """Non-blocking XPUB publisher of ``[topic, json]`` messages (thread-safe)."""
 
@@ -104,6 +110,7 @@ class Publisher:
         self._sock.setsockopt(zmq.LINGER, 0)
         # Report every (un)subscription, also duplicates, so counts stay right.
         self._sock.setsockopt(zmq.XPUB_VERBOSER, 1)
+        self._sock.setsockopt(zmq.MAXMSGSIZE, PUB_MAX_FRAME_BYTES)
         self._release_curve: Callable[[], None] = lambda: None
         try:
             self._release_curve = attach_server(ctx, self._sock, curve)

@@ -236,11 +236,11 @@ def _recv_exactly(s: Any, n: int) -> bytes:
     return out
 
 
-def _announce_huge_frame(endpoint: str, announced: int, send_mb: int) -> tuple[int, bool]:
-    """A raw TCP client speaking ZMTP 3.0 (NULL mechanism, as a REQ): greeting, READY, the
-    empty delimiter, then a frame header announcing ``announced`` bytes and up to
-    ``send_mb`` MB of its body. Returns (bytes of the body sent, connection closed by the
-    server)."""
+def _announce_huge_frame(endpoint: str, announced: int, send_mb: int, kind: bytes = b"REQ") -> tuple[int, bool]:
+    """A raw TCP client speaking ZMTP 3.0 (NULL mechanism, as a ``kind`` socket): greeting,
+    READY, the empty delimiter (REQ), then a frame header announcing ``announced`` bytes and
+    up to ``send_mb`` MB of its body. Returns (bytes of the body sent, connection closed by
+    the server)."""
     import socket
     import struct
 
@@ -249,11 +249,12 @@ def _announce_huge_frame(endpoint: str, announced: int, send_mb: int) -> tuple[i
     try:
         s.sendall(b"\xff" + b"\x00" * 8 + b"\x7f" + b"\x03\x00" + b"NULL".ljust(20, b"\x00") + b"\x00" * 32)
         _recv_exactly(s, 64)  # the server's greeting
-        prop = b"\x0bSocket-Type" + struct.pack(">I", 3) + b"REQ"
+        prop = b"\x0bSocket-Type" + struct.pack(">I", len(kind)) + kind
         body = b"\x05READY" + prop
         s.sendall(bytes([0x04, len(body)]) + body)
         _recv_exactly(s, _recv_exactly(s, 2)[1])  # the server's READY (a short command)
-        s.sendall(b"\x01\x00")  # the REQ envelope's empty delimiter (more follows)
+        if kind == b"REQ":
+            s.sendall(b"\x01\x00")  # the REQ envelope's empty delimiter (more follows)
         s.sendall(b"\x02" + struct.pack(">Q", announced))  # last frame, long size
         chunk = b"\x00" * (1 << 20)
         sent = 0
