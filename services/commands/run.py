@@ -135,7 +135,7 @@ def banner(cfg: Any, reason: str, sim: Any) -> str:
         i = sim.info
         lines.append(f"  simulator  pid {sim.proc.pid}: head {i.head}, odometry {i.odometry}, camera {i.camera}")
     if ep.curve.enabled:
-        lines.append(f"  CURVE      on: clients need the server's public key and a key in {ep.curve.authorized_clients}")
+        lines.append(f"  CURVE      on: only clients whose public key is in {ep.curve.authorized_clients}")
     lines += [
         "  watch it:  " + echo_command(ep.pub, ep.curve),
         "  stop it:   Ctrl-C (or SIGTERM)",
