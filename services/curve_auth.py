@@ -140,10 +140,16 @@ def _load(path: Path, setting: str, *, secret: bool) -> tuple[bytes, bytes | Non
 
 def load_server_keys(cfg: CurveConfig) -> ServerKeys:
     """The server's key pair and the authorized clients' folder, checked; raises
-    :class:`CurveKeyError` with one line naming the setting and the file."""
+    :class:`CurveKeyError` with one line naming the setting and the file. A secret key file
+    that other users may read is used, with a warning."""
     if cfg.server_secret_key is None or cfg.authorized_clients is None:
         raise CurveKeyError("endpoints.curve: no keys configured")
     public, secret = _load(cfg.server_secret_key, "endpoints.curve.server_secret_key", secret=True)
+    if cfg.server_secret_key.stat().st_mode & 0o077:
+        log.warning(
+            "endpoints.curve.server_secret_key: %s is readable by other users (chmod 600 it)",
+            cfg.server_secret_key,
+        )
     folder = cfg.authorized_clients
     if not folder.is_dir():
         raise CurveKeyError(f"endpoints.curve.authorized_clients: {folder} is not a folder")

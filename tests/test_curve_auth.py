@@ -266,3 +266,18 @@ def test_unreadable_keys_fail_the_bind_as_oserror(tmp_path: Path, keys: dict[str
     t0 = time.monotonic()
     ctx.term()  # nothing left open
     assert time.monotonic() - t0 < 2.0
+
+
+def test_a_secret_key_others_can_read_is_warned_about(tmp_path: Path, keys: dict[str, Path], caplog: Any) -> None:
+    import shutil
+
+    loose = tmp_path / "server.key_secret"
+    shutil.copy(keys["server_secret"], loose)
+    os.chmod(loose, 0o644)
+    with caplog.at_level("WARNING", logger="lino_loc.service.curve"):
+        load_server_keys(CurveConfig(server_secret_key=loose, authorized_clients=keys["clients"]))
+    assert "readable by other users" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="lino_loc.service.curve"):
+        load_server_keys(_curve(keys))
+    assert caplog.text == ""
