@@ -34,6 +34,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.evaluation.commands.bench_cmd",
     "services.commands.config_cmd",
     "services.commands.echo",
+    "services.commands.keys_cmd",
     "services.commands.run",
     "services.commands.sim",
 )

@@ -10,7 +10,8 @@
     [localizer]        lino_loc.localizer.LocalizerConfig: motion, sensor, filter, fusion
     [active_vision]    services.active_head.ActiveVisionSettings: the head's range, settle
                        time, interval, home (the method's settings are its defaults)
-    [endpoints]        ZeroMQ PUB and REP addresses, high-water mark
+    [endpoints]        ZeroMQ PUB and REP addresses, high-water mark; [endpoints.curve] the
+                       CURVE keys (services.curve_auth.CurveConfig), required off loopback
     [publish]          services.publisher.PublishConfig: particle throttling, truth (simulation)
     [persistence]      services.persistence.PersistenceConfig: state file (last pose), save period
     [logging]          level
@@ -54,6 +55,7 @@ from lino_loc.localizer import LocalizerConfig
 from lino_loc.particle_filter import FilterConfig, old_key_problems
 from lino_loc.preprocessing import Preprocess
 from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
+from services.curve_auth import CurveConfig, curve_problem
 from services.persistence import PersistenceConfig
 from services.publisher import PublishConfig
 
@@ -199,13 +201,18 @@ class MapConfig(_Section):
 
 
 class EndpointsConfig(_Section):
-    """ZeroMQ addresses (docs/zeromq.md). Bind to 0.0.0.0 to serve other machines."""
+    """ZeroMQ addresses (docs/zeromq.md) and their CURVE keys (services/curve_auth.py).
+
+    An address other machines can reach (anything but loopback, ``ipc://``, ``inproc://``)
+    is refused unless ``curve`` names the keys; with keys, both sockets use CURVE on any
+    address."""
 
     pub: str = Field("tcp://127.0.0.1:5556", description="PUB socket: pose, status, particles, truth")
     rep: str = Field("tcp://127.0.0.1:5557", description="REP socket: control requests")
     sndhwm: int = Field(
         100, ge=1, description="PUB high-water mark: messages queued per slow subscriber, then dropped"
     )
+    curve: CurveConfig = Field(default_factory=CurveConfig)
 
     @field_validator("pub", "rep")
     @classmethod
@@ -218,6 +225,9 @@ class EndpointsConfig(_Section):
     def _distinct(self) -> EndpointsConfig:
         if self.pub == self.rep:
             raise ValueError(f"pub and rep must differ (both {self.pub})")
+        problem = curve_problem({"pub": self.pub, "rep": self.rep}, self.curve)
+        if problem is not None:
+            raise ValueError(problem)
         return self
 
 

@@ -38,6 +38,7 @@ import zmq
 from pydantic import BaseModel
 
 from lino_loc import __version__
+from services.curve_auth import CurveConfig, CurveKeyError, attach_server
 from services.messages import (
     AckReply,
     ControlStateReply,
@@ -71,6 +72,17 @@ if TYPE_CHECKING:
 log = logging.getLogger("lino_loc.service.control")
 
 Handler = Callable[[Any], BaseModel]
+
+#: Largest frame the control socket accepts (``ZMQ_MAXMSGSIZE``). The largest valid request
+#: (a ``set_pose`` with its covariance) is a few hundred bytes; up to this size an oversized
+#: request still gets the one-line error of :func:`services.messages.parse_request` (its
+#: limit is ``MAX_REQUEST_BYTES``, 64 KiB). A frame announced larger than this closes that
+#: client's connection before anything is allocated for it (the client's request times out).
+CONTROL_MAX_FRAME_BYTES = 1024 * 1024
+#: Requests queued per connection (``ZMQ_RCVHWM``): a REQ client has one in flight; a client
+#: that streams frames without reading the replies is held back by TCP, so what one
+#: connection can make the daemon hold is bounded by CONTROL_RCVHWM x CONTROL_MAX_FRAME_BYTES.
+CONTROL_RCVHWM = 8
 
 
 class CommandQueue:
@@ -144,7 +156,13 @@ def handle_raw(raw_frames: list[bytes], handler: Handler) -> bytes:
 class ControlServer(threading.Thread):
     """REP socket serving :func:`handle_raw` until :meth:`stop`."""
 
-    def __init__(self, ctx: zmq.Context[Any], endpoint: str, handler: Handler) -> None:
+    def __init__(
+        self, ctx: zmq.Context[Any], endpoint: str, handler: Handler, curve: CurveConfig | None = None
+    ) -> None:
+        """Bind ``endpoint``; with ``curve`` keys, as a CURVE server (services/curve_auth.py).
+        Frames over :data:`CONTROL_MAX_FRAME_BYTES` drop the connection, and at most
+        :data:`CONTROL_RCVHWM` requests queue per connection. Raises OSError when the
+        endpoint cannot be bound or the keys cannot be read."""
         super().__init__(name="control", daemon=True)
         self.endpoint = endpoint
         self.handler = handler
@@ -152,10 +170,15 @@ class ControlServer(threading.Thread):
         self._sock = ctx.socket(zmq.REP)
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.setsockopt(zmq.SNDTIMEO, 1000)
+        self._sock.setsockopt(zmq.MAXMSGSIZE, CONTROL_MAX_FRAME_BYTES)
+        self._sock.setsockopt(zmq.RCVHWM, CONTROL_RCVHWM)
+        self._release_curve: Callable[[], None] = lambda: None
         try:
+            self._release_curve = attach_server(ctx, self._sock, curve)
             self._sock.bind(endpoint)
-        except zmq.ZMQError as exc:
+        except (zmq.ZMQError, CurveKeyError) as exc:
             self._sock.close(linger=0)
+            self._release_curve()
             raise OSError(f"cannot bind the control socket to {endpoint}: {exc}") from exc
         self.requests = 0
         self.errors = 0
@@ -184,11 +207,15 @@ class ControlServer(threading.Thread):
                     log.warning("control reply not sent: %s", exc)
         finally:
             self._sock.close(linger=0)
+            self._release_curve()
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop_event.set()
         if self.is_alive():
             self.join(timeout)
+        if not self.is_alive():  # also when never started: the socket and the ZAP handler go
+            self._sock.close(linger=0)
+            self._release_curve()
 
 
 class ControlHandlers:

@@ -238,14 +238,14 @@ class Daemon:
         """Bind the sockets, set the initial belief, start the threads. Raises OSError when
         an endpoint cannot be bound."""
         ep = self.cfg.endpoints
-        self.publisher = Publisher(self.ctx, ep.pub, ep.sndhwm)
+        self.publisher = Publisher(self.ctx, ep.pub, ep.sndhwm, ep.curve)
         self.poses = PosePublisher(self.publisher, self.cfg.publish, self.localizer.particles)
         handlers = ControlHandlers(
             self.commands, self.localizer, self.poses, self.status, self.active, self.saver,
             self.status.map_info.checksum,
         )
         try:
-            self.control = ControlServer(self.ctx, ep.rep, handlers)
+            self.control = ControlServer(self.ctx, ep.rep, handlers, ep.curve)
         except OSError:
             self.publisher.close()
             raise

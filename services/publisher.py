@@ -51,6 +51,7 @@ import zmq
 from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.pose_estimate import Estimate
+from services.curve_auth import CurveConfig, CurveKeyError, attach_server
 from services.messages import ParticlesMessage, PoseMessage, encode
 
 log = logging.getLogger("lino_loc.service.publisher")
@@ -88,10 +89,20 @@ class RateLimiter:
         return False
 
 
+#: Largest frame a subscriber may send (``ZMQ_MAXMSGSIZE`` on the XPUB socket). Subscribers
+#: send only subscriptions, topic prefixes (the longest topic, ``particles``, is 9 bytes); a
+#: frame announced larger closes that subscriber's connection before anything is allocated.
+PUB_MAX_FRAME_BYTES = 4096
+
+
 class Publisher:
     """Non-blocking XPUB publisher of ``[topic, json]`` messages (thread-safe)."""
 
-    def __init__(self, ctx: zmq.Context[Any], endpoint: str, sndhwm: int = 100) -> None:
+    def __init__(
+        self, ctx: zmq.Context[Any], endpoint: str, sndhwm: int = 100, curve: CurveConfig | None = None
+    ) -> None:
+        """Bind ``endpoint``; with ``curve`` keys, as a CURVE server (services/curve_auth.py).
+        Raises OSError when the endpoint cannot be bound or the keys cannot be read."""
         self.endpoint = endpoint
         self._lock = threading.Lock()
         self._sock = ctx.socket(zmq.XPUB)
@@ -99,10 +110,14 @@ class Publisher:
         self._sock.setsockopt(zmq.LINGER, 0)
         # Report every (un)subscription, also duplicates, so counts stay right.
         self._sock.setsockopt(zmq.XPUB_VERBOSER, 1)
+        self._sock.setsockopt(zmq.MAXMSGSIZE, PUB_MAX_FRAME_BYTES)
+        self._release_curve: Callable[[], None] = lambda: None
         try:
+            self._release_curve = attach_server(ctx, self._sock, curve)
             self._sock.bind(endpoint)
-        except zmq.ZMQError as exc:
+        except (zmq.ZMQError, CurveKeyError) as exc:
             self._sock.close(linger=0)
+            self._release_curve()
             raise OSError(f"cannot bind the PUB socket to {endpoint}: {exc}") from exc
         self.sent: Counter[str] = Counter()
         self.dropped = 0
@@ -173,6 +188,7 @@ class Publisher:
             if not self._closed:
                 self._closed = True
                 self._sock.close(linger=0)
+                self._release_curve()
 
 
 #: Seed of the generator that picks the published subset of particles.

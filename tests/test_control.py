@@ -217,3 +217,151 @@ def test_save_state_needs_a_tracking_estimate(tmp_path) -> None:  # noqa: ANN001
     assert isinstance(r, SaveStateReply) and r.path == str(tmp_path / "state.json")
     saved = load_state(tmp_path / "state.json")
     assert saved is not None and saved.map_checksum == "sum" and saved.pose.x == 1.0
+
+
+# ------------------------------------------------------------------ frame size limit
+def _rss_mb() -> float:
+    for line in open("/proc/self/status", encoding="ascii"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def _recv_exactly(s: Any, n: int) -> bytes:
+    out = b""
+    while len(out) < n:
+        got = s.recv(n - len(out))
+        assert got, "the server closed the connection during the handshake"
+        out += got
+    return out
+
+
+def _announce_huge_frame(endpoint: str, announced: int, send_mb: int, kind: bytes = b"REQ") -> tuple[int, bool]:
+    """A raw TCP client speaking ZMTP 3.0 (NULL mechanism, as a ``kind`` socket): greeting,
+    READY, the empty delimiter (REQ), then a frame header announcing ``announced`` bytes and
+    up to ``send_mb`` MB of its body. Returns (bytes of the body sent, connection closed by
+    the server)."""
+    import socket
+    import struct
+
+    host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
+    s = socket.create_connection((host, int(port)), timeout=5)
+    try:
+        s.sendall(b"\xff" + b"\x00" * 8 + b"\x7f" + b"\x03\x00" + b"NULL".ljust(20, b"\x00") + b"\x00" * 32)
+        _recv_exactly(s, 64)  # the server's greeting
+        prop = b"\x0bSocket-Type" + struct.pack(">I", len(kind)) + kind
+        body = b"\x05READY" + prop
+        s.sendall(bytes([0x04, len(body)]) + body)
+        _recv_exactly(s, _recv_exactly(s, 2)[1])  # the server's READY (a short command)
+        if kind == b"REQ":
+            s.sendall(b"\x01\x00")  # the REQ envelope's empty delimiter (more follows)
+        s.sendall(b"\x02" + struct.pack(">Q", announced))  # last frame, long size
+        chunk = b"\x00" * (1 << 20)
+        sent = 0
+        s.settimeout(2.0)
+        try:
+            for _ in range(send_mb):
+                s.sendall(chunk)
+                sent += len(chunk)
+            s.settimeout(1.0)
+            closed = s.recv(1) == b""
+        except (BrokenPipeError, ConnectionResetError):
+            closed = True
+        except TimeoutError:
+            closed = False
+        return sent, closed
+    finally:
+        s.close()
+
+
+def test_a_200_mb_frame_announcement_is_dropped_without_memory_growth() -> None:
+    from services.control import CONTROL_MAX_FRAME_BYTES
+
+    assert CONTROL_MAX_FRAME_BYTES <= 1 << 20
+    ctx = zmq.Context()
+    server = ControlServer(ctx, "tcp://127.0.0.1:*", lambda req: PingReply(stamp=1.0))
+    endpoint = server._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    server.start()
+    try:
+        before = _rss_mb()
+        for _ in range(3):
+            sent, closed = _announce_huge_frame(endpoint, 200 * 1024 * 1024, send_mb=40)
+            assert closed and sent < 40 * (1 << 20), "the server kept reading a 200 MB frame"
+        assert _rss_mb() - before < 10.0
+        req = ctx.socket(zmq.REQ)
+        req.setsockopt(zmq.LINGER, 0)
+        req.setsockopt(zmq.RCVTIMEO, 5000)
+        req.connect(endpoint)
+        req.send(b'{"cmd": "ping"}')  # and it still serves
+        assert json.loads(req.recv())["cmd"] == "ping"
+        req.close(0)
+    finally:
+        server.stop()
+        ctx.term()
+
+
+def test_the_raw_client_does_reach_a_socket_without_the_limit() -> None:
+    """The test above is not vacuous: a REP socket without ZMQ_MAXMSGSIZE takes the body."""
+    ctx = zmq.Context()
+    rep = ctx.socket(zmq.REP)
+    rep.setsockopt(zmq.LINGER, 0)
+    rep.bind("tcp://127.0.0.1:*")
+    try:
+        sent, closed = _announce_huge_frame(rep.getsockopt(zmq.LAST_ENDPOINT).decode(), 200 * 1024 * 1024, 8)
+        assert sent == 8 * (1 << 20) and not closed
+    finally:
+        rep.close(0)
+        ctx.term()
+
+
+_FLOOD_CLIENT = r"""
+import sys, time, zmq
+ctx = zmq.Context()
+s = ctx.socket(zmq.DEALER)
+s.setsockopt(zmq.SNDHWM, 0)
+s.setsockopt(zmq.LINGER, 0)
+s.connect(sys.argv[1])
+frame = b'{"cmd": "ping", "v": 1}'.ljust(60 * 1024)
+for _ in range(int(sys.argv[2])):
+    s.send_multipart([b"", frame])  # the REQ envelope: empty delimiter, then the request
+print("sent", flush=True)
+time.sleep(float(sys.argv[3]))
+"""
+
+
+def test_a_client_that_floods_requests_is_held_back_not_buffered() -> None:
+    """2,000 requests of 60 KiB (120 MB) sent without reading a reply, to a server whose
+    handler is slow: what the daemon queues for that connection stays within CONTROL_RCVHWM
+    requests (the rest waits in the client and in TCP), so its memory barely moves."""
+    import subprocess
+    import sys
+
+    from services.control import CONTROL_RCVHWM
+
+    assert CONTROL_RCVHWM <= 16
+    ctx = zmq.Context()
+
+    def slow(req: Any) -> Any:
+        time.sleep(0.005)
+        return PingReply(stamp=1.0)
+
+    server = ControlServer(ctx, "tcp://127.0.0.1:*", slow)
+    endpoint = server._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    server.start()
+    before = _rss_mb()
+    client = subprocess.Popen(
+        [sys.executable, "-c", _FLOOD_CLIENT, endpoint, "2000", "3"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert client.stdout is not None and client.stdout.readline().strip() == "sent"
+        peak = before
+        for _ in range(20):
+            time.sleep(0.1)
+            peak = max(peak, _rss_mb())
+        assert server.requests > 0
+        assert peak - before < 20.0, f"the server buffered {peak - before:.0f} MB of queued requests"
+    finally:
+        client.kill()
+        client.wait(5)
+        server.stop()
+        ctx.term()

@@ -170,3 +170,38 @@ def test_particles_of_zero_weight_are_uniform() -> None:
     loc.w = np.zeros(4)
     poses = PosePublisher(FakePublisher(), PublishConfig(), loc.particles)  # type: ignore[arg-type]
     assert poses.particles_message(1.0).weights == [0.25] * 4
+
+
+def test_a_200_mb_frame_from_a_subscriber_is_dropped_and_the_others_keep_their_stream() -> None:
+    """A raw client on the pose port announcing a 200 MB frame (as a subscription) is
+    disconnected at the header (PUB_MAX_FRAME_BYTES); real subscribers keep receiving."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_control import _announce_huge_frame, _rss_mb
+
+    from services.publisher import PUB_MAX_FRAME_BYTES
+
+    assert PUB_MAX_FRAME_BYTES <= 64 * 1024
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
+    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"pose")
+    sub.connect(endpoint)
+    try:
+        before = _rss_mb()
+        for _ in range(3):
+            sent, closed = _announce_huge_frame(endpoint, 200 * 1024 * 1024, 40, kind=b"SUB")
+            assert closed and sent < 40 * (1 << 20)
+        assert _rss_mb() - before < 10.0
+        deadline = time.monotonic() + 5.0
+        while not sub.poll(50) and time.monotonic() < deadline:
+            pub.send_frames([b"pose", b"{}"])
+        assert sub.recv_multipart() == [b"pose", b"{}"]
+    finally:
+        sub.close(0)
+        pub.close()
+        ctx.term()

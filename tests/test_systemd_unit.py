@@ -90,6 +90,55 @@ def test_unit_contents():
     assert _values(e, "Install", "WantedBy") == ["multi-user.target"]
 
 
+def _bytes(v: str) -> int:
+    units = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
+    return int(v[:-1]) * units[v[-1]] if v[-1] in units else int(v)
+
+
+def test_memory_is_capped_above_the_measured_footprint():
+    """The daemon's measured peak (~152 MB on the simulated robot, ~270 MB expected with
+    depthai on the robot: the unit's comment) fits under MemoryHigh, MemoryHigh under
+    MemoryMax, and swap cannot stretch the cap."""
+    e = _entries(UNIT.read_text(encoding="utf-8"))
+    high, cap = _values(e, "Service", "MemoryHigh"), _values(e, "Service", "MemoryMax")
+    assert len(high) == 1 and len(cap) == 1
+    assert 300 << 20 <= _bytes(high[0]) < _bytes(cap[0]) <= 1 << 30
+    assert _values(e, "Service", "MemorySwapMax") == ["0"]
+
+
+def test_hardening_the_daemon_lives_with():
+    e = _entries(UNIT.read_text(encoding="utf-8"))
+    svc = "Service"
+    for key, value in {
+        "PrivateMounts": "yes", "ProtectProc": "invisible", "MemoryDenyWriteExecute": "yes",
+        "UMask": "0077", "IPAddressDeny": "any", "IPAddressAllow": "localhost",
+        "RestrictSUIDSGID": "yes", "LockPersonality": "yes", "ProtectClock": "yes",
+    }.items():
+        assert _values(e, svc, key) == [value], key
+    filters = _values(e, svc, "SystemCallFilter")
+    assert filters[0] == "@system-service"
+    assert set(filters[1].lstrip("~").split()) == {"@privileged", "@resources"} and filters[1].startswith("~")
+    assert _values(e, svc, "CapabilityBoundingSet") == [""]
+    # what it needs stays: its groups, its devices, no user namespace that would drop them
+    assert _values(e, svc, "PrivateUsers") == [] and _values(e, svc, "PrivateNetwork") == []
+    assert _values(e, svc, "ProcSubset") == []
+
+
+@needs_analyze
+def test_security_exposure_stays_low():
+    """`systemd-analyze security --offline=yes`: 2.1 before the memory caps and the added
+    hardening, 1.3 after; the rest is what the daemon needs (devices, network, groups)."""
+    res = subprocess.run(
+        [ANALYZE, "security", "--offline=yes", "--no-pager", str(UNIT)],
+        capture_output=True, text=True, timeout=60, env={**os.environ, "SYSTEMD_COLORS": "0"},
+    )
+    assert res.returncode == 0, res.stderr
+    line = [x for x in res.stdout.splitlines() if "Overall exposure level" in x]
+    assert line, res.stdout[-2000:]
+    exposure = float(line[0].split(":")[1].split()[0])
+    assert exposure <= 1.3, line[0]
+
+
 @needs_analyze
 def test_systemd_analyze_verify_is_silent(tmp_path):
     text = UNIT.read_text(encoding="utf-8")

@@ -7,6 +7,12 @@ nothing arrives for S seconds. Ctrl-C ends it quietly (status 0), as does a clos
 (``lino-loc echo | head``). With ``--json`` it prints, at the end, one JSON object
 ``{"endpoint", "topics", "count", "messages": [{"topic", "payload"}, ...]}``.
 
+A daemon with CURVE keys (``[endpoints.curve]``) is read with ``--curve-server-key FILE``
+(the daemon's public ``server.key``) and ``--curve-client-key FILE`` (this client's
+``NAME.key_secret``, whose public half is in the daemon's ``authorized_clients`` folder);
+without them, or with a key the daemon does not know, nothing arrives (ZeroMQ drops the
+handshake silently), which ``--timeout`` turns into status 1.
+
 Late joining: a SUB socket only receives what is published after its subscription reached
 the publisher (ZeroMQ's "slow joiner"), so the first few milliseconds of the stream are
 never seen; that is harmless for a live stream.
@@ -47,6 +53,8 @@ def _emit(line: str) -> None:
 def run_echo(args: argparse.Namespace) -> int:
     import zmq
 
+    from services.curve_auth import CurveKeyError, set_client_keys
+
     topics = sorted(TOPICS) if args.all else (args.topic or ["pose"])
     wanted = {t.encode() for t in topics}
     collected: list[dict[str, Any]] = []
@@ -58,6 +66,15 @@ def run_echo(args: argparse.Namespace) -> int:
     try:
         for t in topics:
             sock.setsockopt(zmq.SUBSCRIBE, t.encode())
+        if args.curve_server_key or args.curve_client_key:
+            if not (args.curve_server_key and args.curve_client_key):
+                print("lino-loc echo: CURVE needs both --curve-server-key and --curve-client-key", file=sys.stderr)
+                return 2
+            try:
+                set_client_keys(sock, args.curve_server_key, args.curve_client_key)
+            except CurveKeyError as exc:
+                print(f"lino-loc echo: {exc}", file=sys.stderr)
+                return 2
         try:
             sock.connect(args.endpoint)
         except zmq.ZMQError as exc:
@@ -134,6 +151,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--endpoint",
         default=DEFAULT_ENDPOINT,
         help=f"PUB endpoint of the daemon (default {DEFAULT_ENDPOINT})",
+    )
+    p.add_argument(
+        "--curve-server-key", metavar="FILE",
+        help="the daemon's public key file (server.key): connect with CURVE",
+    )
+    p.add_argument(
+        "--curve-client-key", metavar="FILE",
+        help="this client's key pair (NAME.key_secret), authorized by the daemon",
     )
     p.add_argument("--count", type=_positive_int, metavar="N", help="exit after N messages")
     p.add_argument(

@@ -8,7 +8,9 @@ Which robot:
   started as a child process, its map is built once and cached (or reused), and the same
   daemon runs with the real head and odometry drivers over the simulator's emulators.
 
-It prints where the poses are published and how to watch them (stderr), then serves until
+It refuses to start (one line, exit 2) when an endpoint can be reached from the network and
+no CURVE keys are configured (``[endpoints.curve]``, services/curve_auth.py), or when the
+configured key files cannot be read. It prints where the poses are published and how to watch them (stderr), then serves until
 SIGTERM or SIGINT, which shut it down cleanly (threads stopped, pose saved, devices closed,
 the child simulator stopped) with exit status 0. If the child simulator dies, the simulated
 robot is gone (its emulated ports and camera with it): the daemon shuts down the same way and
@@ -96,6 +98,28 @@ def choose_config(path: str | None) -> tuple[Any, Path | None, str]:
     return ServiceConfig.simulated_defaults(), None, "no robot devices found: the simulated robot (built-in)"
 
 
+_WILDCARD_HOSTS = ("tcp://0.0.0.0:", "tcp://*:", "tcp://[::]:", "tcp://[*]:")
+
+
+def echo_command(pub: str, curve: Any) -> str:
+    """The `lino-loc echo` line that reads ``pub`` from this machine: a wildcard bind is
+    reached on 127.0.0.1 (a wildcard is an address to bind, never one to connect to), and
+    with CURVE the key options are shown (the server's public key next to its secret key,
+    as `lino-loc keys generate` lays them out)."""
+    endpoint = pub
+    for prefix in _WILDCARD_HOSTS:
+        if pub.startswith(prefix):
+            endpoint = "tcp://127.0.0.1:" + pub[len(prefix):]
+    cmd = "lino-loc echo --topic pose"
+    if endpoint != "tcp://127.0.0.1:5556":
+        cmd += f" --endpoint {endpoint}"
+    if curve.enabled:
+        secret = str(curve.server_secret_key)
+        public = secret[: -len("_secret")] if secret.endswith(".key_secret") else "SERVER.key"
+        cmd += f" --curve-server-key {public} --curve-client-key CLIENT.key_secret"
+    return cmd
+
+
 def banner(cfg: Any, reason: str, sim: Any) -> str:
     ep = cfg.endpoints
     lines = [
@@ -110,8 +134,10 @@ def banner(cfg: Any, reason: str, sim: Any) -> str:
     if sim is not None and sim.info is not None:
         i = sim.info
         lines.append(f"  simulator  pid {sim.proc.pid}: head {i.head}, odometry {i.odometry}, camera {i.camera}")
+    if ep.curve.enabled:
+        lines.append(f"  CURVE      on: only clients whose public key is in {ep.curve.authorized_clients}")
     lines += [
-        "  watch it:  lino-loc echo --topic pose" + (f" --endpoint {ep.pub}" if ep.pub != "tcp://127.0.0.1:5556" else ""),
+        "  watch it:  " + echo_command(ep.pub, ep.curve),
         "  stop it:   Ctrl-C (or SIGTERM)",
         "",
     ]
@@ -120,11 +146,14 @@ def banner(cfg: Any, reason: str, sim: Any) -> str:
 
 def run_daemon(args: argparse.Namespace) -> int:
     _single_threaded_blas()
+    from services.curve_auth import load_server_keys
     from services.daemon import Daemon
     from services.sim_launcher import SimProcess, ensure_sim_map, needs_sim, resolve_auto
 
     cfg, cfg_path, reason = choose_config(args.config)
     logging.getLogger().setLevel(cfg.logging.level)
+    if cfg.endpoints.curve.enabled:  # unreadable keys: one line now, before anything starts
+        load_server_keys(cfg.endpoints.curve)
     stop_requested: list[int] = []
 
     def early_stop(signum: int, _frame: Any) -> None:
