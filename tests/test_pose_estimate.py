@@ -180,3 +180,28 @@ def test_non_finite_particles_belong_to_no_mode() -> None:
     mean, cov, mass = dominant_mode(bad, np.full(4, 0.25))
     assert mass == 0.0 and np.all(np.isnan(mean)) and np.all(np.isnan(cov))
     assert np.all(cluster_labels(bad) == -1)
+
+
+def test_a_localizer_whose_particles_span_kilometres_estimates_in_bounded_memory() -> None:
+    """The Localizer given the belief of the request that once crashed the daemon (the
+    filter's own set_pose, below the service's checks), then dead reckoning and an image: every
+    estimate finite, each step well under 50 MB."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_localizer import _config, _world
+
+    from lino_loc.localizer import Localizer
+
+    m, f_img, _ = _world()
+    loc = Localizer(m, _config())
+    loc.set_pose([3000.0, 3000.0, 0.0], np.eye(3) * 1e9)
+    image = f_img(np.array([[2.0, 1.5, 0.0]]))[0]
+    for step in (lambda: loc.predict_only((0.1, 0.0, 0.0), stamp=1.0), lambda: loc.update((0.1, 0.0, 0.0), 0.0, image)):
+        tracemalloc.start()
+        est = step()
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        assert peak < 50e6
+        assert np.all(np.isfinite(est.pose)) and np.all(np.isfinite(est.covariance))
