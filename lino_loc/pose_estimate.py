@@ -7,6 +7,9 @@ clustering is skipped). Otherwise particles are binned into cells (:data:`CLUSTE
 :data:`CLUSTER_CELL_THETA`), occupied cells that touch (26-neighbourhood, heading cyclic) form
 clusters (:func:`cluster_labels`), and the heaviest cluster gives the weighted mean (circular
 mean for theta) and the 3 x 3 covariance (heading differences wrapped about the mean).
+Only occupied cells are represented, so the clustering costs O(M log M) time and O(M) memory
+for M particles however far apart they are; a particle with a non-finite coordinate or
+weight belongs to no mode and has no weight in the estimate.
 
 The mode is converged (:meth:`EstimateConfig.converged`) when it holds at least
 ``converged_mass`` of the weight, the square root of the largest eigenvalue of its position
@@ -28,7 +31,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from lino_loc.poses import wrap_angle
 
@@ -74,63 +78,90 @@ class EstimateConfig(BaseModel):
         )
 
 
+def _axis_ranks(cells: FloatArray) -> NDArray[np.int64]:
+    """Ranks of integer-valued cell coordinates that keep adjacency: sorted distinct values get
+    consecutive ranks when they differ by 1 and ranks two apart otherwise, so two cells touch
+    along this axis exactly when their ranks differ by at most 1. Ranks lie in [0, 2 U) for U
+    distinct values, whatever the values' spread."""
+    values, inverse = np.unique(cells, return_inverse=True)
+    step = np.where(np.diff(values) == 1.0, 1, 2)
+    rank = np.concatenate([np.zeros(1, dtype=np.int64), np.cumsum(step, dtype=np.int64)])
+    return rank[inverse.reshape(-1)]
+
+
+def _cell_components(
+    kx: NDArray[np.int64], ky: NDArray[np.int64], it: NDArray[np.int64], n_th: int
+) -> NDArray[np.int64]:
+    """Component (0..C-1) of each occupied cell (rank x, rank y, heading bin), numbered in the
+    order of each component's first cell in (x, y, theta) order; returns one per input row.
+
+    The occupied cells are hashed to one integer key each (``np.unique``); each cell looks up
+    its 13 "forward" neighbours of the 26-neighbourhood (heading bin cyclic) in the sorted key
+    table (``np.searchsorted``), and ``scipy.sparse.csgraph.connected_components`` joins the
+    cells found. O(M log M) time and O(M) memory for M particles."""
+    ny = int(ky.max()) + 3  # y ranks shifted by one, so that neighbours y - 1 and y + 1 fit
+    key = ((kx + 1) * ny + (ky + 1)) * n_th + it
+    cells, inverse = np.unique(key, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    u = cells.shape[0]
+    if u == 1:
+        return np.zeros(kx.shape[0], dtype=np.int64)
+    ct = cells % n_th
+    cxy = cells - ct
+    src, dst = [], []
+    for dx, dy, dt in _FORWARD_OFFSETS:
+        target = cxy + (dx * ny + dy) * n_th + (ct + dt) % n_th
+        pos = np.minimum(np.searchsorted(cells, target), u - 1)
+        hit = np.flatnonzero(cells[pos] == target)
+        src.append(hit)
+        dst.append(pos[hit])
+    s, d = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(s.shape[0], dtype=np.int8), (s, d)), shape=(u, u)).tocsr()
+    _, comp = connected_components(graph, directed=True, connection="weak")
+    _, first = np.unique(comp, return_index=True)  # first (smallest) cell of each component
+    order = np.empty(first.shape[0], dtype=np.int64)
+    order[np.argsort(first, kind="stable")] = np.arange(first.shape[0])
+    return order[comp][inverse]
+
+
+# Half of the 26-neighbourhood (dx, dy, dtheta): the offsets after (0, 0, 0) in lexicographic
+# order; with each edge found from one side, the other half adds nothing.
+_FORWARD_OFFSETS = tuple(
+    (dx, dy, dt)
+    for dx in (-1, 0, 1)
+    for dy in (-1, 0, 1)
+    for dt in (-1, 0, 1)
+    if (dx, dy, dt) > (0, 0, 0)
+)
+
+
 def cluster_labels(
     poses: FloatArray, cell_xy: float = CLUSTER_CELL_XY, cell_theta: float = CLUSTER_CELL_THETA
 ) -> NDArray[np.int64]:
     """Connected components of occupied (x, y, theta) cells; heading bins are cyclic.
 
-    Two particles are in the same cluster when a chain of occupied cells, each touching the
-    next (26-neighbourhood), joins their cells. Returns one label (0..C-1) per pose.
-    Implementation: ``scipy.ndimage.label`` on the dense occupancy grid of the particles'
-    bounding box, then the labels that touch across the heading seam (-pi / pi) are merged.
+    Cells are ``floor(x / cell_xy)``, ``floor(y / cell_xy)`` and heading bin ``floor((theta +
+    pi) / (2 pi / n))`` mod n, n = round(2 pi / cell_theta) (theta wrapped first). Two
+    particles are in the same cluster when a chain of occupied cells, each touching the next
+    (26-neighbourhood, bin n - 1 touching bin 0), joins their cells. Returns one label per pose:
+    0..C-1, numbered in the order of each cluster's first cell in (x, y, theta) order; -1 for a
+    pose with a non-finite coordinate (it belongs to no cluster).
+
+    Only occupied cells are represented (:func:`_cell_components`): time O(M log M) and memory
+    O(M) for M poses, whatever their spread.
     """
-    p = np.asarray(poses, dtype=np.float64)
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    labels = np.full(p.shape[0], -1, dtype=np.int64)
+    finite = np.isfinite(p).all(axis=1)
+    q = p if bool(finite.all()) else p[finite]
+    if q.shape[0] == 0:
+        return labels
     n_th = max(1, int(round(2.0 * math.pi / cell_theta)))
-    ix = np.floor(p[:, 0] / cell_xy).astype(np.int64)
-    iy = np.floor(p[:, 1] / cell_xy).astype(np.int64)
-    it = np.floor((wrap_angle(p[:, 2]) + math.pi) / (2.0 * math.pi / n_th)).astype(np.int64) % n_th
-    ix -= ix.min()
-    iy -= iy.min()
-    shape = (int(ix.max()) + 1, int(iy.max()) + 1, n_th)
-    occ = np.zeros(shape, dtype=bool)
-    occ[ix, iy, it] = True
-    grid, n_lab = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
-    if n_th >= 3 and n_lab > 1:
-        # 26-neighbourhood across the seam: cell (x, y, last) touches (x + a, y + b, 0).
-        first, last = grid[:, :, 0], grid[:, :, -1]
-        pairs = []
-        for a in (-1, 0, 1):
-            for b in (-1, 0, 1):
-                sa = slice(max(a, 0), shape[0] + min(a, 0))
-                sb = slice(max(b, 0), shape[1] + min(b, 0))
-                ta = slice(max(-a, 0), shape[0] + min(-a, 0))
-                tb = slice(max(-b, 0), shape[1] + min(-b, 0))
-                la, lb = last[ta, tb], first[sa, sb]
-                both = (la > 0) & (lb > 0) & (la != lb)
-                if both.any():
-                    pairs.append(np.column_stack([la[both], lb[both]]))
-        if pairs:
-            parent = np.arange(n_lab + 1)
-
-            def find(u: int) -> int:
-                while parent[u] != u:
-                    parent[u] = parent[parent[u]]
-                    u = int(parent[u])
-                return u
-
-            for u, v in np.unique(np.concatenate(pairs), axis=0):
-                ru, rv = find(int(u)), find(int(v))
-                if ru != rv:
-                    parent[max(ru, rv)] = min(ru, rv)
-            roots = np.array([find(u) for u in range(n_lab + 1)])
-            grid = roots[grid]
-    if n_lab <= 1:
-        return np.zeros(p.shape[0], dtype=np.int64)
-    lab = grid[ix, iy, it]
-    present = np.zeros(int(grid.max()) + 1, dtype=bool)  # relabel 0..C-1 without sorting
-    present[lab] = True
-    return (np.cumsum(present) - 1)[lab].astype(np.int64)
-
+    kx = _axis_ranks(np.floor(q[:, 0] / cell_xy))
+    ky = _axis_ranks(np.floor(q[:, 1] / cell_xy))
+    it = np.floor((wrap_angle(q[:, 2]) + math.pi) / (2.0 * math.pi / n_th)).astype(np.int64) % n_th
+    labels[finite] = _cell_components(kx, ky, it, n_th)
+    return labels
 
 
 def pose_stats(
@@ -184,20 +215,53 @@ def dominant_mode(
     trig: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray, float]:
     """(mean, covariance, weight) of the heaviest mode of normalized weighted poses (see the
-    module docstring); the clustering runs only when the cloud is not compact."""
-    mean, cov, d = pose_stats(poses, weights, trig)
+    module docstring); the clustering runs only when the cloud is not compact.
+
+    A particle with a non-finite coordinate or weight belongs to no mode: it is left out of
+    the mean and the covariance, and the returned weight is the mode's share of the whole
+    weight. With no finite particle of positive weight: NaN mean and covariance, weight 0.
+    Ties between equally heavy clusters go to the one whose first cell comes first in
+    (x, y, theta) order."""
+    p = np.asarray(poses, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    finite = np.isfinite(p).all(axis=1) & np.isfinite(w)
+    if not bool(finite.all()):
+        return _dominant_of_finite(p, w, finite, compact_xy, compact_theta, cell_xy, cell_theta)
+    mean, cov, d = pose_stats(p, w, trig)
     r2 = d[0] * d[0]
     r2 += d[1] * d[1]
     if float(r2.max()) <= compact_xy**2 and float(np.abs(d[2]).max()) <= compact_theta:
         return mean, cov, 1.0
-    labels = cluster_labels(poses, cell_xy, cell_theta)
+    labels = cluster_labels(p, cell_xy, cell_theta)
     if labels.max() == 0:  # one cluster
         return mean, cov, 1.0
-    mass = np.bincount(labels, weights=weights)
+    mass = np.bincount(labels, weights=w)
     best = int(np.argmax(mass))
     sel = labels == best
-    mean, cov = weighted_pose_stats(poses[sel], weights[sel])
+    mean, cov = weighted_pose_stats(p[sel], w[sel])
     return mean, cov, float(mass[best])
+
+
+def _dominant_of_finite(
+    p: FloatArray,
+    w: FloatArray,
+    finite: NDArray[np.bool_],
+    compact_xy: float,
+    compact_theta: float,
+    cell_xy: float,
+    cell_theta: float,
+) -> tuple[FloatArray, FloatArray, float]:
+    """:func:`dominant_mode` of the finite particles only, its weight a share of the whole
+    finite weight of all particles (see there)."""
+    total = float(np.sum(w[np.isfinite(w)]))
+    kept = float(np.sum(w[finite]))
+    if not finite.any() or not kept > 0.0 or not math.isfinite(total):
+        return np.full(3, np.nan), np.full((3, 3), np.nan), 0.0
+    mean, cov, mass = dominant_mode(
+        p[finite], w[finite] / kept, compact_xy=compact_xy, compact_theta=compact_theta,
+        cell_xy=cell_xy, cell_theta=cell_theta,
+    )
+    return mean, cov, mass * kept / total
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ from services.messages import (
     SetPoseRequest,
     StatusReply,
     StatusRequest,
+    belief_problem,
     encode_reply,
     error_reply,
     parse_request,
@@ -273,9 +274,18 @@ class ControlHandlers:
     def get_pose(self, _req: GetPoseRequest) -> GetPoseReply:
         return GetPoseReply(pose=self.poses.latest()[0])
 
-    def set_pose(self, req: SetPoseRequest) -> AckReply:
+    def set_pose(self, req: SetPoseRequest) -> BaseModel:
+        """Belief around the requested pose; refused in one line (error reply, belief
+        unchanged) when the pose or covariance does not fit the map
+        (:func:`services.messages.belief_problem`: within the map's bounds plus
+        :data:`services.messages.POSE_MARGIN_M`, position standard deviation at most the map's
+        extent, heading standard deviation at most pi)."""
         mean = np.array(req.pose.as_tuple(), dtype=np.float64)
         cov = np.asarray(req.covariance, dtype=np.float64).reshape(3, 3)
+        problem = belief_problem(mean, cov, self.localizer.bounds)
+        if problem is not None:
+            log.info("set_pose refused: %s", problem)
+            return error_reply(f"set_pose: {problem}", cmd="set_pose")
         self.commands.call(lambda: self.localizer.set_pose(mean, cov))
         log.info("set_pose (%.2f, %.2f, %.2f) from the control socket", *mean)
         return AckReply(

@@ -36,7 +36,11 @@ control commands, and on time: ``status`` (every :data:`services.status.STATUS_P
 (at half of ``$WATCHDOG_USEC``; from this loop, so a hung loop stops pinging), saving the
 pose (every ``persistence.save_period_s``). Without frames for a while (:class:`CameraWatch`:
 the camera failed) it predicts from odometry alone at the camera's rate (``dead_reckoning``:
-the covariance grows with the motion) and the status says so.
+the covariance grows with the motion) and the status says so. An exception in one frame's
+work (the update, publishing, active vision) never ends the loop: it is logged (its
+traceback once, then rate-limited), counted in ``status`` (``update_errors``) and the frame
+is skipped; after :data:`RESET_AFTER_FAILED_UPDATES` failures in a row the belief restarts as
+global localization.
 
 Starting belief: the saved pose and covariance when there is one (as AMCL does), its
 standard deviations raised to at least :data:`RESTORE_MIN_STD`; else global localization.
@@ -54,6 +58,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypedDict
 
@@ -93,6 +98,10 @@ RESTORE_MIN_STD = (0.1, 0.1, 0.05)
 
 #: Frame periods without a frame before the loop dead-reckons (at least 1 s).
 CAMERA_TIMEOUT_PERIODS = 5.0
+
+#: Updates in a row that raised after which the belief is spread over the map again
+#: (``start_global``): a belief that makes every update fail would otherwise never recover.
+RESET_AFTER_FAILED_UPDATES = 5
 
 class DeviceFactories(TypedDict):
     """How the daemon makes its three drivers (each worker calls its factory again after a
@@ -224,6 +233,7 @@ class Daemon:
         self.control: ControlServer | None = None
         self.truth: TruthRelay | None = None
         self._stop = threading.Event()
+        self._failed_in_a_row = 0
         self.watch = CameraWatch.for_fps(
             cfg.devices.camera.sim.fps if cfg.simulated else cfg.devices.camera.oakd.fps,
             time.monotonic(),
@@ -320,9 +330,9 @@ class Daemon:
                 mono = time.monotonic()
                 if frame is not None:
                     self.watch.last_frame_mono = mono
-                    self._on_frame(frame)
+                    self._survive(self._on_frame, frame)
                 else:
-                    self._maybe_dead_reckon(mono, time.time())
+                    self._survive(self._maybe_dead_reckon, mono, time.time())
                 if wd_period is not None and mono >= next_wd:
                     self.notifier.watchdog()
                     next_wd = mono + wd_period
@@ -334,11 +344,30 @@ class Daemon:
             self.shutdown()
         return 0
 
+    def _survive(self, step: Callable[..., None], *args: Any) -> None:
+        """Run one frame's work; an exception is logged, counted and survived (module
+        docstring). :data:`RESET_AFTER_FAILED_UPDATES` failures with no pose published in
+        between reset the belief (a failure after the pose was published, in active vision
+        say, does not: the belief is fine)."""
+        try:
+            step(*args)
+        except Exception as exc:  # noqa: BLE001 - the daemon never dies on one frame
+            self.status.update_failed(exc)
+            self._failed_in_a_row += 1
+            if self._failed_in_a_row % RESET_AFTER_FAILED_UPDATES == 0:
+                log.error("%d updates in a row failed: starting global localization",
+                          self._failed_in_a_row)
+                try:
+                    self.localizer.start_global()
+                except Exception:  # noqa: BLE001
+                    log.exception("global localization failed too")
+
     def _on_frame(self, frame: StereoFrame) -> None:
         stamp = float(frame.stamp)
         if not self.watch.fresh(stamp):
             self.status.out_of_order()
             return
+        self.watch.last_update_stamp = stamp  # also when the update fails: no frame twice
         delta, _ = self.odometry.take_until(stamp)
         pan, moving = self.heads.pan_at(stamp)
         at_rest = self.active.frame_at_rest(stamp, moving, self.heads.last_motion)
@@ -346,7 +375,6 @@ class Daemon:
         disparity = frame.disparity if (self.has_disparity and at_rest) else None
         est = self.localizer.update(delta, pan, image, disparity, stamp=stamp)
         self.status.check_appearance_changes()
-        self.watch.last_update_stamp = stamp
         if self.watch.dead_reckoning:
             log.info("camera frames again: localizing with images")
         self.watch.dead_reckoning = False
@@ -363,16 +391,20 @@ class Daemon:
                 self.watch.silent_for(mono),
             )
         self.watch.dead_reckoning = True
+        self.watch.last_update_stamp = now  # also when the prediction fails: once a period
         delta, _ = self.odometry.take_until(now)
         est = self.localizer.predict_only(delta, stamp=now)
-        self.watch.last_update_stamp = now
         self._publish_pose(est, now, None)
 
     def _publish_pose(self, est: Estimate, stamp: float, pan: float | None) -> None:
+        """Publish the pose (and maybe the particles); raises LinoLocError when the estimate
+        holds a non-finite value (nothing published: a failed update)."""
         assert self.poses is not None
-        if self.poses.publish(est, stamp=stamp, pan=pan, dead_reckoning=self.watch.dead_reckoning):
-            self.status.pose_published(stamp)
-            self.poses.publish_particles(stamp)
+        if not self.poses.publish(est, stamp=stamp, pan=pan, dead_reckoning=self.watch.dead_reckoning):
+            raise LinoLocError("the estimate holds a non-finite value: no pose published")
+        self._failed_in_a_row = 0
+        self.status.pose_published(stamp)
+        self.poses.publish_particles(stamp)
 
     def _state(self) -> str:
         est = self.poses.latest()[1] if self.poses is not None else None

@@ -37,7 +37,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Protocol, Union
 
 import numpy as np
 from pydantic import (
@@ -67,6 +67,20 @@ DEFAULT_SET_POSE_COVARIANCE: tuple[float, ...] = (
     0.0, 0.25, 0.0,
     0.0, 0.0, (math.pi / 12.0) ** 2,
 )  # fmt: skip
+
+#: Limits of a belief given to the daemon (``set_pose``; :func:`belief_problem` for saved
+#: states too). A pose may lie at most POSE_MARGIN_M outside the map's bounds (which already
+#: hold ``localizer.sensor.map_margin`` around the surveyed poses): the robot can stand a
+#: little beyond where the survey camera stood, not metres away.
+POSE_MARGIN_M = 2.0
+#: Largest heading standard deviation, rad: beyond pi a Gaussian heading says no more than
+#: "any heading" (``global_localization`` says that).
+MAX_STD_THETA = math.pi
+#: Largest position standard deviation (m) and |x|, |y| (m) a request may carry whatever the
+#: map (the daemon then checks the map's own limits: a position standard deviation no larger
+#: than the map's extent, the pose within its bounds plus POSE_MARGIN_M).
+MAX_STD_XY_M = 1000.0
+MAX_ABS_POSITION_M = 1.0e6
 
 LocalizationState = Literal["global", "tracking", "lost"]
 """``global``: the belief is spread (global localization or after a kidnapping);
@@ -108,6 +122,61 @@ def _check_covariance(values: list[float]) -> list[float]:
     if float(np.min(np.linalg.eigvalsh(sym))) < -tol:
         raise ValueError("covariance must be positive semi-definite")
     return [float(v) for v in sym.reshape(-1)]
+
+
+class BoundsLike(Protocol):
+    """An axis-aligned box of the map, metres (``lino_loc.sensor_model.Bounds``)."""
+
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+
+
+def covariance_problem(cov: Any, max_std_xy: float, max_std_theta: float = MAX_STD_THETA) -> str | None:
+    """Why a 3 x 3 covariance over (x, y, theta) is not a sane belief, in one line, or None.
+
+    It must be finite, symmetric and positive semi-definite (:func:`_check_covariance`), its
+    position standard deviation, the square root of the largest eigenvalue of the 2 x 2
+    position block, sqrt((a + d) / 2 + hypot((a - d) / 2, b)), at most ``max_std_xy`` (m) and
+    its heading standard deviation sqrt(c_33) at most ``max_std_theta`` (rad)."""
+    try:
+        c = np.asarray(_check_covariance(list(np.asarray(cov, dtype=np.float64).reshape(-1))))
+        c = c.reshape(3, 3)
+    except ValueError as exc:
+        return str(exc)
+    a, b, d = float(c[0, 0]), float(c[0, 1]), float(c[1, 1])
+    std_xy = math.sqrt(max(0.5 * (a + d) + math.hypot(0.5 * (a - d), b), 0.0))
+    std_th = math.sqrt(max(float(c[2, 2]), 0.0))
+    problems = []
+    if std_xy > max_std_xy:
+        problems.append(f"position standard deviation {std_xy:.4g} m exceeds {max_std_xy:.4g} m")
+    if std_th > max_std_theta:
+        problems.append(f"heading standard deviation {std_th:.4g} rad exceeds {max_std_theta:.4g} rad")
+    return f"covariance: {'; '.join(problems)}" if problems else None
+
+
+def belief_problem(
+    mean: Any, cov: Any, bounds: BoundsLike, margin: float = POSE_MARGIN_M
+) -> str | None:
+    """Why a Gaussian belief (mean (x, y, theta), 3 x 3 covariance) does not fit the map, in
+    one line naming the value, or None when it does: the pose finite and within ``bounds``
+    grown by ``margin`` m on each side, the covariance sane (:func:`covariance_problem`) with
+    a position standard deviation no larger than the map's extent, max(x_max - x_min,
+    y_max - y_min), and a heading standard deviation at most :data:`MAX_STD_THETA`. For
+    ``set_pose`` and for any saved state the daemon would start from."""
+    m = np.asarray(mean, dtype=np.float64).reshape(-1)
+    if m.shape[0] != 3 or not np.all(np.isfinite(m)):
+        return f"pose {m.tolist()}: must be 3 finite numbers (x, y, theta)"
+    x, y = float(m[0]), float(m[1])
+    if not (bounds.x_min - margin <= x <= bounds.x_max + margin
+            and bounds.y_min - margin <= y <= bounds.y_max + margin):
+        return (
+            f"pose ({x:.6g}, {y:.6g}) lies outside the map: x in [{bounds.x_min:.3f}, "
+            f"{bounds.x_max:.3f}], y in [{bounds.y_min:.3f}, {bounds.y_max:.3f}] m, plus {margin:g} m"
+        )
+    extent = max(bounds.x_max - bounds.x_min, bounds.y_max - bounds.y_min)
+    return covariance_problem(cov, extent)
 
 
 Covariance = Annotated[
@@ -294,6 +363,10 @@ class StatusMessage(_Published):
         0, ge=0, description="changes of the scene's appearance (lights switched) the filter "
         "found and relearnt after, since start"
     )
+    update_errors: int = Field(
+        0, ge=0, description="frame updates that raised since start (logged; the frame was "
+        "skipped and the daemon went on)"
+    )
     latency_ms: LatencyStats = Field(default_factory=LatencyStats)
     devices: dict[str, DeviceHealthModel] = Field(
         default_factory=dict, description="keys: camera, head, odometry"
@@ -358,9 +431,22 @@ class SetPoseRequest(_Request):
     pose: Pose2D
     covariance: Covariance = Field(
         default_factory=lambda: list(DEFAULT_SET_POSE_COVARIANCE),
-        description="default: diag(0.25 m^2, 0.25 m^2, (pi/12)^2 rad^2)",
+        description="default: diag(0.25 m^2, 0.25 m^2, (pi/12)^2 rad^2); position standard "
+        "deviation at most 1000 m (and the map's extent), heading standard deviation at most pi",
     )
     frame_id: Literal["map"] = "map"
+
+    @model_validator(mode="after")
+    def _sane(self) -> SetPoseRequest:
+        """Absolute limits, whatever the map: |x|, |y| <= MAX_ABS_POSITION_M, the covariance
+        within MAX_STD_XY_M and MAX_STD_THETA (the daemon checks the map's own limits)."""
+        for name, v in (("x", self.pose.x), ("y", self.pose.y)):
+            if abs(v) > MAX_ABS_POSITION_M:
+                raise ValueError(f"pose.{name} = {v:.6g} m is beyond +-{MAX_ABS_POSITION_M:g} m")
+        problem = covariance_problem(self.covariance, MAX_STD_XY_M)
+        if problem is not None:
+            raise ValueError(problem)
+        return self
 
 
 class GlobalLocalizationRequest(_Request):

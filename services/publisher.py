@@ -2,9 +2,27 @@
 
 :class:`Publisher` binds an XPUB socket (every message is two frames
 ``[topic, json]``). It behaves as a PUB socket for the subscribers; XPUB is used because it
-also delivers the subscriptions, so the daemon knows how many clients are listening and
-to which topics (:attr:`Publisher.subscriptions`), and can skip serializing topics nobody
-wants (the particle set is the largest message).
+also delivers the subscriptions, so the daemon knows which topics someone listens to
+(:attr:`Publisher.subscriptions`) and can skip serializing topics nobody wants (the particle
+set is the largest message).
+
+Counting subscriptions: the XPUB is not verbose, so libzmq reports a subscription prefix once
+when its first subscriber (over all connections) takes it and once more when its last one
+drops it, by an unsubscription or by disconnecting; a SUB socket itself counts its own
+duplicates and sends the unsubscription only when its last one goes. The daemon's view is
+therefore the set of prefixes someone holds, and it is right however many times each client
+subscribed. (A verbose XPUB reports every duplicate subscription but only one unsubscription,
+so counts made from it leak.)
+
+What subscriptions can cost: only prefixes of a published topic (:data:`TOPIC_PREFIXES`, at
+most :data:`MAX_SUBSCRIPTION_BYTES` long, 24 distinct values for the four topics) can ever
+match a message; any
+other subscription is ignored (counted in :attr:`Publisher.ignored_subscriptions`, logged
+once), so the daemon's own view holds at most that many entries. At most
+:data:`MAX_SUBSCRIPTION_MESSAGES` subscription messages are read per publish, so a flood of
+them costs each publish a bounded time. libzmq keeps its own table of every distinct prefix
+subscribed: its cost grows with their number and length (``ZMQ_MAXMSGSIZE`` bounds the
+length), which the daemon cannot see.
 
 Never blocking: each subscriber has a send queue of ``sndhwm`` messages
 (``ZMQ_SNDHWM``); when a subscriber does not read, ZeroMQ drops further messages *for that
@@ -52,9 +70,20 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.pose_estimate import Estimate
 from services.curve_auth import CurveConfig, CurveKeyError, attach_server
-from services.messages import ParticlesMessage, PoseMessage, encode
+from services.messages import TOPICS, ParticlesMessage, PoseMessage, encode
 
 log = logging.getLogger("lino_loc.service.publisher")
+
+#: Every subscription prefix that can match a published topic (a topic's name starts with
+#: it), the empty one included; subscriptions outside it are ignored.
+TOPIC_PREFIXES: frozenset[bytes] = frozenset(
+    t.encode("ascii")[:k] for t in TOPICS for k in range(len(t) + 1)
+)
+#: The longest subscription that can match a topic: the longest topic name, bytes.
+MAX_SUBSCRIPTION_BYTES = max(len(t) for t in TOPICS)
+#: Subscription messages read from the socket per call (publish, wanted): a flood is read
+#: over several calls, each bounded in time.
+MAX_SUBSCRIPTION_MESSAGES = 1000
 
 
 class PublishConfig(BaseModel):
@@ -108,8 +137,9 @@ class Publisher:
         self._sock = ctx.socket(zmq.XPUB)
         self._sock.setsockopt(zmq.SNDHWM, int(sndhwm))
         self._sock.setsockopt(zmq.LINGER, 0)
-        # Report every (un)subscription, also duplicates, so counts stay right.
-        self._sock.setsockopt(zmq.XPUB_VERBOSER, 1)
+        # Not verbose: one report per prefix when its first subscriber comes and when its
+        # last one goes (module docstring), so duplicates are counted by libzmq.
+        self._sock.setsockopt(zmq.XPUB_VERBOSE, 0)
         self._sock.setsockopt(zmq.MAXMSGSIZE, PUB_MAX_FRAME_BYTES)
         self._release_curve: Callable[[], None] = lambda: None
         try:
@@ -121,28 +151,36 @@ class Publisher:
             raise OSError(f"cannot bind the PUB socket to {endpoint}: {exc}") from exc
         self.sent: Counter[str] = Counter()
         self.dropped = 0
-        self.subscriptions: Counter[bytes] = Counter()
+        self.subscriptions: set[bytes] = set()
+        self.ignored_subscriptions = 0
         self._closed = False
 
     # ---------------------------------------------------------------------------------
     def _drain_subscriptions(self) -> None:
-        """Read the (un)subscription messages XPUB delivers (called with the lock held)."""
-        while True:
+        """Read up to :data:`MAX_SUBSCRIPTION_MESSAGES` (un)subscription reports (called with
+        the lock held): a prefix of a topic is added or removed, anything else is ignored."""
+        for _ in range(MAX_SUBSCRIPTION_MESSAGES):
             try:
                 msg = self._sock.recv(zmq.NOBLOCK)
-            except zmq.Again:
+            except zmq.ZMQError:  # zmq.Again included: nothing more to read
                 return
-            except zmq.ZMQError:
-                return
-            if not msg:
-                continue
             topic = bytes(msg[1:])
-            if msg[0] == 1:
-                self.subscriptions[topic] += 1
-            elif msg[0] == 0 and self.subscriptions[topic] > 0:
-                self.subscriptions[topic] -= 1
-                if self.subscriptions[topic] == 0:
-                    del self.subscriptions[topic]
+            if msg[:1] not in (b"\x00", b"\x01") or topic not in TOPIC_PREFIXES:
+                self._ignore(msg)
+            elif msg[0] == 1:
+                self.subscriptions.add(topic)
+            else:
+                self.subscriptions.discard(topic)
+
+    def _ignore(self, msg: bytes) -> None:
+        """Count a message that is not the (un)subscription of a topic prefix; log the first."""
+        self.ignored_subscriptions += 1
+        if self.ignored_subscriptions == 1:
+            log.warning(
+                "pose port: ignoring a subscription that matches no topic (%d bytes, %r...; "
+                "topics: %s; further ones are counted, not logged)",
+                len(msg), bytes(msg[:24]), ", ".join(TOPICS),
+            )
 
     def wanted(self, topic: str) -> bool:
         """True if some subscriber's prefix matches ``topic`` (XPUB's view)."""
@@ -151,14 +189,15 @@ class Publisher:
             if self._closed:
                 return False
             self._drain_subscriptions()
-            return any(t.startswith(p) for p, n in self.subscriptions.items() if n > 0)
+            return any(t.startswith(p) for p in self.subscriptions)
 
     @property
     def n_subscriptions(self) -> int:
+        """Distinct topic prefixes someone subscribes to (not the number of clients)."""
         with self._lock:
             if not self._closed:
                 self._drain_subscriptions()
-            return sum(self.subscriptions.values())
+            return len(self.subscriptions)
 
     def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:
         """Send raw frames without blocking; False (and counted) if ZeroMQ refused."""

@@ -10,10 +10,13 @@
   percentiles (ms, ``numpy.percentile``, linear interpolation); a period without a pose keeps
   the previous figures;
 - counters since start: frames received and dropped (the mailbox's plus the camera driver's
-  ``dropped``/``frames_dropped`` counters), frames skipped as out of order;
+  ``dropped``/``frames_dropped`` counters), frames skipped as out of order, frame updates
+  that raised (``update_errors``: the first of each exception type is logged with its
+  traceback, later ones at most once per :data:`UPDATE_ERROR_LOG_PERIOD_S`, with the count);
 - the devices' health, the map, the active-vision switches, the filter's state.
 
 The loop calls :meth:`pose_published`, :meth:`frame_taken`, :meth:`out_of_order`,
+:meth:`update_failed`,
 :meth:`check_appearance_changes` (logs each new appearance change) and, once per period,
 :meth:`publish` (which ends the period with :meth:`roll`); :meth:`build` may run in any thread (the control thread answers
 ``status`` with it). The systemd status line is :meth:`line`.
@@ -57,6 +60,10 @@ STATUS_PERIOD_S = 1.0
 
 #: Latencies kept between two status messages (the oldest are dropped beyond this).
 LATENCY_WINDOW = 10000
+
+#: Seconds between two log lines about failed updates of an exception type already logged
+#: (each new type is logged at once, with its traceback).
+UPDATE_ERROR_LOG_PERIOD_S = 60.0
 
 
 def percentile(values: list[float], q: float) -> float | None:
@@ -119,6 +126,10 @@ class StatusReporter:
         self.latency = LatencyStats()
         self.rates = (0.0, 0.0)
         self.out_of_order_frames = 0
+        self.update_errors = 0
+        self._error_types: set[str] = set()
+        self._errors_unlogged = 0
+        self._next_error_log = 0.0
         self.appearance_changes_logged = 0
         self.last: StatusMessage | None = None
 
@@ -139,6 +150,30 @@ class StatusReporter:
         """One frame skipped: not newer than the last one used."""
         with self._lock:
             self.out_of_order_frames += 1
+
+    def update_failed(self, exc: BaseException) -> None:
+        """One frame's update raised ``exc`` (the loop skipped that frame): counted; logged
+        with its traceback the first time its type is seen, else at most once per
+        :data:`UPDATE_ERROR_LOG_PERIOD_S` with the number of failures since the last line."""
+        kind = type(exc).__name__
+        now = self._clock()
+        with self._lock:
+            self.update_errors += 1
+            total = self.update_errors
+            new = kind not in self._error_types and len(self._error_types) < 64
+            if new:
+                self._error_types.add(kind)
+            self._errors_unlogged += 1
+            due = new or now >= self._next_error_log
+            if due:
+                unlogged, self._errors_unlogged = self._errors_unlogged, 0
+                self._next_error_log = now + UPDATE_ERROR_LOG_PERIOD_S
+        if new:
+            log.error("frame update failed (%d so far), frame skipped: %s: %s", total, kind, exc,
+                      exc_info=exc)
+        elif due:
+            log.error("frame update failed again (%d since the last report, %d so far): %s: %s",
+                      unlogged, total, kind, exc)
 
     def check_appearance_changes(self) -> int:
         """Log each appearance change the filter found since the last call (lights switched:
@@ -189,7 +224,7 @@ class StatusReporter:
         av = self.sources.active_vision()
         with self._lock:
             latency, (pose_rate, frame_rate) = self.latency, self.rates
-            out_of_order = self.out_of_order_frames
+            out_of_order, update_errors = self.out_of_order_frames, self.update_errors
         return StatusMessage(
             stamp=time.time(),
             state=self.sources.state(),  # type: ignore[arg-type]
@@ -198,6 +233,7 @@ class StatusReporter:
             frames=self.mailbox.received,
             dropped_frames=self.dropped_frames(),
             out_of_order_frames=out_of_order,
+            update_errors=update_errors,
             appearance_changes=self.sources.appearance_changes(),
             latency_ms=latency,
             devices={k: DeviceHealthModel.from_health(h) for k, h in health.items()},

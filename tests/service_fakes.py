@@ -11,6 +11,7 @@ from pydantic import BaseModel
 
 from drivers.interfaces import DeviceHealth, HealthState
 from lino_loc.pose_estimate import Estimate
+from lino_loc.sensor_model import Bounds
 
 
 def estimate(state: str = "tracking", stamp: float | None = 10.0, pose: tuple[float, float, float] = (1.0, 2.0, 0.5),
@@ -85,6 +86,7 @@ class FakeLocalizer:
         self.w = np.full(n, 1.0 / n)
         self.calls: list[Any] = []
         self.appearance_changes = 0
+        self.bounds = Bounds(0.0, 5.0, 0.0, 3.0)  # the box of the belief above
 
     def particles(self) -> tuple[np.ndarray, np.ndarray]:
         return self.p.copy(), self.w.copy()

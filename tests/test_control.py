@@ -8,6 +8,7 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import pytest
 import zmq
 
@@ -365,3 +366,50 @@ def test_a_client_that_floods_requests_is_held_back_not_buffered() -> None:
         client.wait(5)
         server.stop()
         ctx.term()
+
+
+@pytest.mark.parametrize(
+    ("request_bytes", "named"),
+    [
+        (b'{"cmd": "set_pose", "pose": {"x": 3000, "y": 3000, "theta": 0}}', "pose (3000, 3000) lies outside the map"),
+        (b'{"cmd": "set_pose", "pose": {"x": 7.1, "y": 1, "theta": 0}}', "pose (7.1, 1) lies outside the map"),
+        (b'{"cmd": "set_pose", "pose": {"x": 2, "y": 1, "theta": 0}, "covariance": [100,0,0, 0,1,0, 0,0,0.1]}',
+         "position standard deviation 10 m exceeds 5 m"),
+        (b'{"cmd": "set_pose", "pose": {"x": 2, "y": 1, "theta": 0}, "covariance": [0.1,0,0, 0,0.1,0, 0,0,10]}',
+         "heading standard deviation 3.162 rad exceeds 3.142 rad"),
+        (b'{"cmd": "set_pose", "pose": {"x": 3000, "y": 3000, "theta": 0}, "covariance": [1e9,0,0, 0,1e9,0, 0,0,1e9]}',
+         "covariance: position standard deviation 3.162e+04 m exceeds 1000 m; heading standard deviation"),
+        (b'{"cmd": "set_pose", "pose": {"x": 1e300, "y": 0, "theta": 0}}', "pose.x = 1e+300 m is beyond"),
+    ],
+)
+def test_set_pose_outside_the_map_or_with_an_insane_covariance_is_refused(
+    tmp_path, request_bytes: bytes, named: str  # noqa: ANN001
+) -> None:
+    """The fake map's bounds are x in [0, 5], y in [0, 3] (extent 5 m); 2 m of margin."""
+    h, q, loc = _handlers(tmp_path)
+    reply = json.loads(handle_raw([request_bytes], h))
+    assert reply["ok"] is False and reply["cmd"] == "set_pose"
+    assert named in reply["error"] and "\n" not in reply["error"]
+    assert loc.calls == []  # the belief was not touched
+    inside = b'{"cmd": "set_pose", "pose": {"x": 6.9, "y": -1.9, "theta": 0}, "covariance": [24,0,0, 0,24,0, 0,0,9.8]}'
+    assert isinstance(_ask(h, inside, q), AckReply) and loc.calls[0][0] == "set_pose"
+
+
+def test_belief_problem_is_reusable_for_saved_states() -> None:
+    from lino_loc.sensor_model import Bounds
+    from services.messages import POSE_MARGIN_M, belief_problem
+
+    b = Bounds(-1.0, 11.0, -1.0, 7.0)
+    ok = np.diag([0.04, 0.04, 0.01])
+    assert belief_problem([5.0, 3.0, 0.2], ok, b) is None
+    assert belief_problem([11.0 + POSE_MARGIN_M, -1.0 - POSE_MARGIN_M, 0.0], ok, b) is None
+    assert "outside the map" in str(belief_problem([11.0 + POSE_MARGIN_M + 0.01, 0.0, 0.0], ok, b))
+    assert "outside the map" in str(belief_problem([14.0, 0.0, 0.0], ok, b, margin=2.5))
+    assert belief_problem([5.0, 3.0, 0.0], np.diag([1e6, 1.0, 0.1]), b) == (
+        "covariance: position standard deviation 1000 m exceeds 12 m"
+    )
+    assert "finite" in str(belief_problem([np.nan, 0.0, 0.0], ok, b))
+    assert "finite" in str(belief_problem([1.0, 0.0, 0.0], np.full((3, 3), np.inf), b))
+    assert "positive semi-definite" in str(belief_problem([1.0, 0.0, 0.0], np.diag([1.0, -1.0, 0.1]), b)) or (
+        "variances" in str(belief_problem([1.0, 0.0, 0.0], np.diag([1.0, -1.0, 0.1]), b))
+    )

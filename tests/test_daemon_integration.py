@@ -429,6 +429,33 @@ def test_malformed_control_messages_get_errors_and_the_loop_keeps_publishing(rig
     assert len(ps) >= 5 and ps[-1]["seq"] > ps[0]["seq"]
 
 
+def test_the_set_pose_that_once_crashed_the_daemon_is_refused_in_one_line(rig: Rig) -> None:
+    """Regression: ``set_pose`` at (3000, 3000) with variances of 1e9, then a camera gap, took
+    the daemon down (MemoryError from the mode clustering). The request is refused in one
+    line naming the value, the belief is untouched, the loop keeps publishing."""
+    s = rig.stream
+    assert s is not None
+    before = request(rig.rep, {"cmd": "get_pose"})["pose"]
+    crash = {"cmd": "set_pose", "pose": {"x": 3000.0, "y": 3000.0, "theta": 0.0},
+             "covariance": [1e9, 0, 0, 0, 1e9, 0, 0, 0, 1e9]}
+    reply = request(rig.rep, crash)
+    assert reply["ok"] is False and reply["cmd"] == "set_pose", reply
+    assert "position standard deviation 3.162e+04 m exceeds 1000 m" in reply["error"], reply
+    assert "\n" not in reply["error"]
+    far = request(rig.rep, {"cmd": "set_pose", "pose": {"x": 3000.0, "y": 3000.0, "theta": 0.0}})
+    assert far["ok"] is False and "pose (3000, 3000) lies outside the map" in far["error"], far
+    wide = request(rig.rep, {"cmd": "set_pose", "pose": {"x": 1.0, "y": 1.0, "theta": 0.0},
+                             "covariance": [1e4, 0, 0, 0, 1e4, 0, 0, 0, 0.1]})
+    assert wide["ok"] is False and "position standard deviation 100 m exceeds" in wide["error"], wide
+    t0 = time.time()
+    time.sleep(2.0)
+    ps = s.poses_since(t0)
+    assert len(ps) >= 5 and ps[0]["seq"] > before["seq"], "the loop stopped publishing"
+    assert all(math.isfinite(p["pose"]["x"]) and abs(p["pose"]["x"]) < 100 for p in ps)
+    st = request(rig.rep, {"cmd": "status"})["status"]
+    assert st["update_errors"] == 0 and rig.daemon is not None and rig.daemon.poll() is None
+
+
 def _pose_rate(s: Stream, seconds: float) -> float:
     t0 = time.time()
     time.sleep(seconds)

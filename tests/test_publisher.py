@@ -68,8 +68,8 @@ def test_a_subscriber_that_never_reads_does_not_block_or_starve_others() -> None
     try:
         stalled.setsockopt(zmq.RCVHWM, 5)
         stalled.setsockopt(zmq.RCVBUF, 4096)
-        for s in (stalled, reader):
-            s.setsockopt(zmq.SUBSCRIBE, b"")
+        for s, prefix in ((stalled, b""), (reader, b"particles")):  # two distinct prefixes
+            s.setsockopt(zmq.SUBSCRIBE, prefix)
             s.connect(endpoint)
         deadline = time.monotonic() + 5
         while pub.n_subscriptions < 2:
@@ -102,6 +102,110 @@ def test_a_subscriber_that_never_reads_does_not_block_or_starve_others() -> None
     finally:
         stalled.close(0)
         reader.close(0)
+        pub.close()
+        ctx.term()
+
+
+def _until(pred, what: str, timeout: float = 5.0) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+
+
+def _settled(pub: Publisher, sub: zmq.Socket, marker: bytes) -> None:
+    """Subscribe ``sub`` to ``marker`` and wait until the publisher sees it: everything
+    ``sub`` sent before has been read too (one connection keeps its order)."""
+    sub.setsockopt(zmq.SUBSCRIBE, marker)
+    _until(lambda: pub.wanted(marker.decode()) and marker in pub.subscriptions, f"marker {marker!r}")
+
+
+def test_duplicate_subscriptions_are_counted_right() -> None:
+    """subscribe x2, unsubscribe x1: still wanted; the second unsubscribe, or a disconnect
+    after duplicates, leaves nobody; two clients on one topic: wanted until both left."""
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
+    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    a, b = ctx.socket(zmq.SUB), ctx.socket(zmq.SUB)
+    try:
+        a.connect(endpoint)
+        a.setsockopt(zmq.SUBSCRIBE, b"particles")
+        a.setsockopt(zmq.SUBSCRIBE, b"particles")
+        _until(lambda: pub.wanted("particles"), "particles wanted")
+        a.setsockopt(zmq.UNSUBSCRIBE, b"particles")
+        _settled(pub, a, b"status")
+        assert pub.wanted("particles") and pub.subscriptions == {b"particles", b"status"}
+        a.setsockopt(zmq.UNSUBSCRIBE, b"particles")
+        _until(lambda: not pub.wanted("particles"), "particles no longer wanted")
+        # duplicates, then a disconnect: nobody left (a verbose XPUB leaked one here)
+        a.setsockopt(zmq.SUBSCRIBE, b"particles")
+        a.setsockopt(zmq.SUBSCRIBE, b"particles")
+        _until(lambda: pub.wanted("particles"), "particles wanted again")
+        a.close(0)
+        _until(lambda: pub.n_subscriptions == 0, "every subscription gone with its client")
+        # two clients on one topic
+        c = ctx.socket(zmq.SUB)
+        for s in (b, c):
+            s.connect(endpoint)
+            s.setsockopt(zmq.SUBSCRIBE, b"particles")
+        _settled(pub, b, b"pose")
+        _settled(pub, c, b"truth")
+        c.close(0)
+        _until(lambda: not pub.wanted("truth"), "c's subscriptions gone")
+        assert pub.wanted("particles")
+        b.setsockopt(zmq.UNSUBSCRIBE, b"particles")
+        _until(lambda: not pub.wanted("particles"), "particles no longer wanted")
+        assert pub.subscriptions == {b"pose"} and pub.ignored_subscriptions == 0
+    finally:
+        a.close(0)
+        b.close(0)
+        pub.close()
+        ctx.term()
+
+
+def test_subscriptions_that_match_no_topic_are_ignored_counted_and_logged_once(caplog) -> None:  # noqa: ANN001
+    """5000 distinct 211-byte subscriptions (and non-subscription messages from an XSUB):
+    the publisher's view keeps only the prefixes of its topics; each read is bounded."""
+    import logging
+    import os
+
+    from services.publisher import MAX_SUBSCRIPTION_MESSAGES, TOPIC_PREFIXES
+
+    assert len(TOPIC_PREFIXES) == 24 and b"" in TOPIC_PREFIXES and b"partic" in TOPIC_PREFIXES
+    caplog.set_level(logging.WARNING, logger="lino_loc.service.publisher")
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
+    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    hostile, raw = ctx.socket(zmq.SUB), ctx.socket(zmq.XSUB)
+    try:
+        hostile.setsockopt(zmq.SNDHWM, 0)
+        hostile.connect(endpoint)
+        raw.connect(endpoint)
+        n = 5000
+        for i in range(n):
+            hostile.setsockopt(zmq.SUBSCRIBE, os.urandom(210) + b"\x01")
+            if i == n // 2:
+                hostile.setsockopt(zmq.SUBSCRIBE, b"pose")
+        raw.send(b"not a subscription")
+        raw.send(b"\x01" + b"particles and more")
+        hostile.setsockopt(zmq.SUBSCRIBE, b"sta")
+        t0 = time.monotonic()
+        reads = 0
+        while b"sta" not in pub.subscriptions or pub.ignored_subscriptions < n + 2:
+            assert time.monotonic() - t0 < 20, (pub.ignored_subscriptions, pub.subscriptions)
+            ts = time.monotonic()
+            pub.wanted("pose")
+            reads += 1
+            assert time.monotonic() - ts < 0.5  # each read bounded (MAX_SUBSCRIPTION_MESSAGES)
+            time.sleep(0.005)
+        assert reads >= n // MAX_SUBSCRIPTION_MESSAGES
+        assert pub.subscriptions == {b"pose", b"sta"} and pub.wanted("status") and not pub.wanted("particles")
+        assert pub.ignored_subscriptions == n + 2
+        warnings = [r for r in caplog.records if "matches no topic" in r.getMessage()]
+        assert len(warnings) == 1
+    finally:
+        hostile.close(0)
+        raw.close(0)
         pub.close()
         ctx.term()
 
