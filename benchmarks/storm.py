@@ -1,0 +1,279 @@
+"""A storm of hostile requests and subscriptions against the running simulated service.
+
+Starts ``lino-loc run`` on the simulated robot as ``benchmarks/bench_service.py`` does (the
+daemon starts its own ``lino-loc sim``: 320 x 240 at 15 fps, 1000 particles, active vision on),
+waits for the first pose and a warm-up, then sends ``--requests`` operations, drawn with a
+seeded generator from these kinds:
+
+- ``malformed``: random bytes, invalid UTF-8, JSON of the wrong type, NaN / inf, unknown
+  commands, 1 MB payloads (and, ``--huge`` of them, 10 MB), 30,000-deep nesting, multipart;
+- ``extreme``: well-formed ``set_pose`` requests far outside the map (up to 1e6 m) or with
+  covariances up to 1e300, and ``global_localization``;
+- ``status``: ordinary ``status`` / ``get_pose`` / ``ping`` requests;
+- ``subscribe``: a subscriber that subscribes to 200 distinct topics of up to 211 bytes
+  (some duplicated), unsubscribes half, and goes without reading.
+
+Each request waits for its reply (REQ, 5 s timeout). It prints one JSON object: the daemon's
+exit status (None: still running, i.e. no crash), the pose rate per one-second window (the
+minimum after the warm-up), the daemon's resident memory (VmRSS) at the start and its
+maximum, the reply latency (median, p99, maximum, per kind) and the replies that were errors.
+Loopback only; the number of operations and the time are bounded.
+
+Usage::
+
+    python benchmarks/storm.py --requests 10000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_service import ROOT, _Collector, _config, _free_port, _mem_mb  # noqa: E402
+
+KINDS = ("malformed", "extreme", "status", "subscribe")
+#: Share of each kind in the storm (sums to 1).
+MIX = (0.45, 0.3, 0.2, 0.05)
+
+
+def malformed(rng: np.random.Generator, huge: bool) -> list[bytes]:
+    """One malformed request (the frames of one message)."""
+    k = int(rng.integers(10))
+    if k == 0:
+        return [rng.bytes(int(rng.integers(1, 4096)))]
+    if k == 1:
+        return [b"\xff\xfe\x80" + rng.bytes(16)]
+    if k == 2:
+        return [json.dumps(rng.choice(["[]", "1", "null", '"x"'])).encode()]
+    if k == 3:
+        return [b'{"cmd": "set_pose", "pose": {"x": NaN, "y": Infinity, "theta": 0}}']
+    if k == 4:
+        return [json.dumps({"cmd": "teleport", "where": "mars"}).encode()]
+    if k == 5:
+        size = 10_000_000 if huge else 1_000_000
+        return [b'{"cmd": "status", "pad": "' + b"x" * size + b'"}']
+    if k == 6:
+        return [b"[" * 30_000 + b"]" * 30_000]
+    if k == 7:
+        return [b'{"cmd": "ping"}', b'{"cmd": "ping"}']
+    if k == 8:
+        return [json.dumps({"cmd": "set_pose", "pose": [1, 2, 3], "covariance": "big"}).encode()]
+    return [json.dumps({"cmd": "set_pose", "pose": {"x": 1, "y": 1, "theta": 0},
+                        "covariance": [1, 2, 3]}).encode()]
+
+
+def extreme(rng: np.random.Generator) -> list[bytes]:
+    """One well-formed request with extreme values."""
+    if rng.random() < 0.2:
+        return [b'{"cmd": "global_localization"}']
+    x, y = (float(v) for v in rng.choice([1.0, -1.0], 2) * 10.0 ** rng.uniform(0, 6, 2))
+    var = float(10.0 ** rng.uniform(-12, 300))
+    cov = [var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, min(var, 1e3)]
+    return [json.dumps({"cmd": "set_pose", "pose": {"x": x, "y": y, "theta": 0.5},
+                        "covariance": cov}).encode()]
+
+
+def ordinary(rng: np.random.Generator) -> list[bytes]:
+    return [json.dumps({"cmd": str(rng.choice(["status", "get_pose", "ping"]))}).encode()]
+
+
+class Requester:
+    """One REQ socket, re-made after a timeout (a REQ socket is stuck after a lost reply)."""
+
+    def __init__(self, ctx: zmq.Context[Any], endpoint: str, timeout_ms: int = 5000) -> None:
+        self.ctx, self.endpoint, self.timeout_ms = ctx, endpoint, timeout_ms
+        self.sock = self._make()
+
+    def _make(self) -> zmq.Socket[Any]:
+        s = self.ctx.socket(zmq.REQ)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.RCVTIMEO, self.timeout_ms)
+        s.connect(self.endpoint)
+        return s
+
+    def send(self, frames: list[bytes]) -> tuple[float, dict[str, Any] | None]:
+        """(seconds to the reply, the parsed reply or None on a timeout / unparsable reply)."""
+        t0 = time.perf_counter()
+        try:
+            self.sock.send_multipart(frames)
+            raw = self.sock.recv()
+        except zmq.Again:
+            self.sock.close(0)
+            self.sock = self._make()
+            return math.inf, None
+        dt = time.perf_counter() - t0
+        try:
+            return dt, json.loads(raw)
+        except ValueError:
+            return dt, None
+
+
+def subscribe_storm(ctx: zmq.Context[Any], endpoint: str, rng: np.random.Generator,
+                    subs: list[zmq.Socket[Any]]) -> None:
+    """A subscriber with 200 distinct long topics (some twice), half of them unsubscribed;
+    kept open without reading until the end of the storm."""
+    s = ctx.socket(zmq.SUB)
+    s.setsockopt(zmq.LINGER, 0)
+    s.setsockopt(zmq.RCVHWM, 10)
+    s.connect(endpoint)
+    topics = [rng.bytes(int(rng.integers(1, 212))) for _ in range(200)]
+    for t in topics + topics[:20]:
+        s.setsockopt(zmq.SUBSCRIBE, t)
+    for t in topics[::2]:
+        s.setsockopt(zmq.UNSUBSCRIBE, t)
+    s.setsockopt(zmq.SUBSCRIBE, b"pose")
+    subs.append(s)
+
+
+class MemorySampler(threading.Thread):
+    def __init__(self, pid: int, period: float = 0.5) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.period = pid, period
+        self.samples: list[tuple[float, float]] = []
+        self.stop_event = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop_event.wait(self.period):
+            try:
+                self.samples.append((time.time(), _mem_mb(self.pid)[0]))
+            except OSError:
+                return
+
+
+def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
+    rng = np.random.default_rng(args.seed)
+    ctx = zmq.Context()
+    req = Requester(ctx, rep)
+    subs: list[zmq.Socket[Any]] = []
+    lat: dict[str, list[float]] = {k: [] for k in KINDS}
+    errors = {k: 0 for k in KINDS}
+    huge_left = args.huge
+    deadline = time.time() + args.max_seconds
+    sent = 0
+    try:
+        for _ in range(args.requests):
+            if time.time() > deadline:
+                break
+            kind = KINDS[int(rng.choice(len(KINDS), p=MIX))]
+            if kind == "subscribe":
+                t0 = time.perf_counter()
+                subscribe_storm(ctx, pub, rng, subs)
+                lat[kind].append(time.perf_counter() - t0)
+            else:
+                if kind == "malformed":
+                    frames = malformed(rng, huge_left > 0)
+                    huge_left -= int(len(frames[0]) > 5_000_000)
+                else:
+                    frames = extreme(rng) if kind == "extreme" else ordinary(rng)
+                dt, reply = req.send(frames)
+                lat[kind].append(dt)
+                if reply is None or not reply.get("ok", False):
+                    errors[kind] += 1
+            sent += 1
+    finally:
+        for s in subs:
+            s.close(0)
+        req.sock.close(0)
+        ctx.term()
+
+    def stats(v: list[float]) -> dict[str, float | None]:
+        a = np.asarray(v, dtype=float) * 1000.0
+        if not a.size:
+            return {"n": 0, "p50_ms": None, "p99_ms": None, "max_ms": None}
+        return {"n": int(a.size), "p50_ms": round(float(np.median(a)), 2),
+                "p99_ms": round(float(np.percentile(a, 99)), 2), "max_ms": round(float(a.max()), 2)}
+
+    replied = [x for k in KINDS if k != "subscribe" for x in lat[k]]
+    return {"sent": sent, "latency": {k: stats(v) for k, v in lat.items()},
+            "reply_latency_all": stats(replied), "error_replies": errors,
+            "subscribers_left_open": len(subs)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--requests", type=int, default=10_000)
+    p.add_argument("--huge", type=int, default=5, help="10 MB requests among the malformed ones")
+    p.add_argument("--max-seconds", type=float, default=900.0, help="the storm stops by then")
+    p.add_argument("--warmup", type=float, default=10.0, help="seconds after the first pose")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--fps", type=float, default=15.0)
+    p.add_argument("--particles", type=int, default=1000)
+    p.add_argument("--no-active-vision", dest="active_vision", action="store_false")
+    p.add_argument("--map-cache", default="~/.cache/lino-loc/maps")
+    p.add_argument("--virtual-headings", type=int, default=5)
+    p.add_argument("--start-timeout", type=float, default=900.0)
+    args = p.parse_args(argv)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    with tempfile.TemporaryDirectory(prefix="storm-") as td:
+        tmp = Path(td)
+        pub, rep = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+        (tmp / "storm.toml").write_text(_config(args, tmp, pub, rep))
+        Path(args.map_cache).expanduser().mkdir(parents=True, exist_ok=True)
+        log = tmp / "daemon.log"
+        col = _Collector(pub)
+        col.start()
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--config",
+                                 str(tmp / "storm.toml")],
+                                stdout=subprocess.DEVNULL, stderr=open(log, "wb"), env=env, cwd=ROOT)
+        mem = MemorySampler(proc.pid)
+        try:
+            deadline = time.time() + args.start_timeout
+            while not col.poses:
+                if proc.poll() is not None or time.time() > deadline:
+                    raise SystemExit(f"daemon did not publish: {log.read_text()[-2000:]}")
+                time.sleep(0.2)
+            time.sleep(args.warmup)
+            rss0 = _mem_mb(proc.pid)[0]
+            mem.start()
+            t0 = time.time()
+            result = storm(args, rep, pub)
+            time.sleep(2.0)
+            t1 = time.time()
+            exit_status = proc.poll()
+        finally:
+            mem.stop_event.set()
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            col.stop_event.set()
+            col.join(5)
+        tail = log.read_text()[-1500:]
+    rx = np.array([r for r, _, _ in col.poses if t0 <= r <= t1])
+    windows = np.histogram(rx, bins=np.arange(t0, t1 + 1e-9, 1.0))[0] if rx.size else np.zeros(1)
+    peak = max((m for _, m in mem.samples), default=rss0)
+    out = {
+        "benchmark": "storm",
+        "machine": {"cpus": os.cpu_count(), "load_avg_1m": round(os.getloadavg()[0], 2)},
+        "daemon_exit_status_during_storm": exit_status,
+        "storm_seconds": round(t1 - t0, 1),
+        "pose_rate_hz": {"mean": round(float(rx.size / (t1 - t0)), 2), "min_1s": int(windows.min())},
+        "rss_mb": {"start": round(rss0, 1), "max": round(peak, 1), "growth": round(peak - rss0, 1)},
+        **result,
+        "log_tail": tail if exit_status is not None else None,
+    }
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
