@@ -13,10 +13,13 @@ seeded generator from these kinds:
 - ``subscribe``: a subscriber that subscribes to 200 distinct topics of up to 211 bytes
   (some duplicated), unsubscribes half, and goes without reading.
 
-Each request waits for its reply (REQ, 5 s timeout). It prints one JSON object: the daemon's
-exit status (None: still running, i.e. no crash), the pose rate per one-second window (the
-minimum after the warm-up), the daemon's resident memory (VmRSS) at the start and its
-maximum, the reply latency (median, p99, maximum, per kind) and the replies that were errors.
+Each request waits for its reply (REQ, 5 s timeout), except a frame over the control socket's
+limit (``services.control.CONTROL_MAX_FRAME_BYTES``): the daemon drops its connection unread,
+so it gets no reply by design and is counted as ``dropped_oversize`` (1 s wait). It prints one
+JSON object: the daemon's exit status (None: still running, i.e. no crash), the pose rate per
+one-second window (the minimum over the storm), the daemon's resident memory (VmRSS) at the
+start and its maximum, the reply latency (median, p99, maximum, per kind), the replies that
+were errors and the requests that got no reply.
 Loopback only; the number of operations and the time are bounded.
 
 Usage::
@@ -44,6 +47,9 @@ import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_service import ROOT, _Collector, _config, _free_port, _mem_mb  # noqa: E402
+
+sys.path.insert(0, str(ROOT))
+from services.control import CONTROL_MAX_FRAME_BYTES  # noqa: E402
 
 KINDS = ("malformed", "extreme", "status", "subscribe")
 #: Share of each kind in the storm (sums to 1).
@@ -96,26 +102,31 @@ class Requester:
 
     def __init__(self, ctx: zmq.Context[Any], endpoint: str, timeout_ms: int = 5000) -> None:
         self.ctx, self.endpoint, self.timeout_ms = ctx, endpoint, timeout_ms
-        self.sock = self._make()
+        self.sock = self._make(timeout_ms)
 
-    def _make(self) -> zmq.Socket[Any]:
+    def _make(self, timeout_ms: int) -> zmq.Socket[Any]:
         s = self.ctx.socket(zmq.REQ)
         s.setsockopt(zmq.LINGER, 0)
-        s.setsockopt(zmq.RCVTIMEO, self.timeout_ms)
+        s.setsockopt(zmq.RCVTIMEO, timeout_ms)
         s.connect(self.endpoint)
         return s
 
-    def send(self, frames: list[bytes]) -> tuple[float, dict[str, Any] | None]:
-        """(seconds to the reply, the parsed reply or None on a timeout / unparsable reply)."""
+    def send(self, frames: list[bytes], timeout_ms: int | None = None) -> tuple[float, dict[str, Any] | None]:
+        """(seconds to the reply, the parsed reply or None on a timeout / unparsable reply);
+        with ``timeout_ms`` on a socket of its own with that timeout."""
+        sock = self.sock if timeout_ms is None else self._make(timeout_ms)
         t0 = time.perf_counter()
         try:
-            self.sock.send_multipart(frames)
-            raw = self.sock.recv()
+            sock.send_multipart(frames)
+            raw = sock.recv()
         except zmq.Again:
-            self.sock.close(0)
-            self.sock = self._make()
+            sock.close(0)
+            if sock is self.sock:
+                self.sock = self._make(self.timeout_ms)
             return math.inf, None
         dt = time.perf_counter() - t0
+        if sock is not self.sock:
+            sock.close(0)
         try:
             return dt, json.loads(raw)
         except ValueError:
@@ -161,6 +172,8 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
     subs: list[zmq.Socket[Any]] = []
     lat: dict[str, list[float]] = {k: [] for k in KINDS}
     errors = {k: 0 for k in KINDS}
+    no_reply = {k: 0 for k in KINDS}
+    dropped_oversize = 0
     huge_left = args.huge
     deadline = time.time() + args.max_seconds
     sent = 0
@@ -179,10 +192,17 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
                     huge_left -= int(len(frames[0]) > 5_000_000)
                 else:
                     frames = extreme(rng) if kind == "extreme" else ordinary(rng)
+                if max(len(f) for f in frames) > CONTROL_MAX_FRAME_BYTES:
+                    _, reply = req.send(frames, timeout_ms=1000)
+                    dropped_oversize += int(reply is None)
+                    sent += 1
+                    continue
                 dt, reply = req.send(frames)
-                lat[kind].append(dt)
-                if reply is None or not reply.get("ok", False):
-                    errors[kind] += 1
+                if reply is None:
+                    no_reply[kind] += 1
+                else:
+                    lat[kind].append(dt)
+                    errors[kind] += int(not reply.get("ok", False))
             sent += 1
     finally:
         for s in subs:
@@ -199,7 +219,8 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
 
     replied = [x for k in KINDS if k != "subscribe" for x in lat[k]]
     return {"sent": sent, "latency": {k: stats(v) for k, v in lat.items()},
-            "reply_latency_all": stats(replied), "error_replies": errors,
+            "reply_latency_all": stats(replied), "error_replies": errors, "no_reply": no_reply,
+            "dropped_oversize": dropped_oversize,
             "subscribers_left_open": len(subs)}
 
 
