@@ -165,6 +165,14 @@ class Rig:
                 stop(p)
 
 
+def exit_on_sigterm() -> None:
+    """SIGTERM raises SystemExit, so that the benchmark's ``finally`` stops its processes."""
+    def handler(*_: object) -> None:
+        raise SystemExit(143)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def stop(proc: subprocess.Popen[bytes], sig: int = signal.SIGTERM, timeout: float = 20.0) -> int:
     """Signal ``proc`` and wait; SIGKILL after ``timeout`` s. Returns its exit status."""
     if proc.poll() is None:

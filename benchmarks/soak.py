@@ -42,7 +42,7 @@ import numpy as np
 import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sim_service_rig import Rig, Settings, Stream, cpu_seconds, rss_mb  # noqa: E402
+from sim_service_rig import Rig, Settings, Stream, cpu_seconds, exit_on_sigterm, rss_mb  # noqa: E402
 
 #: At most this many churning subscribers on the pose port at once.
 CHURN_SUBSCRIBERS = 20
@@ -225,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--start-timeout", type=float, default=300.0)
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
+    exit_on_sigterm()
     out = run(args)
     print(json.dumps(out) if args.json else table(out))
     return 0
