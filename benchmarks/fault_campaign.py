@@ -363,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--only", metavar="A,B", help="only the fault-control rows whose names start with these")
     p.add_argument("--no-auto", action="store_true", help="skip the auto-devices simulator death")
+    p.add_argument("--keep-logs", metavar="DIR", help="copy the daemon's and the simulator's logs here")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     exit_on_sigterm()
@@ -383,6 +384,10 @@ def main(argv: list[str] | None = None) -> int:
             rig.close()
             stream.close()
         tracebacks = rig.daemon_log.read_text().count("Traceback") + rig.sim_log.read_text().count("Traceback")
+        if args.keep_logs:
+            Path(args.keep_logs).mkdir(parents=True, exist_ok=True)
+            for f in (rig.daemon_log, rig.sim_log):
+                (Path(args.keep_logs) / f.name).write_bytes(f.read_bytes())
         auto = None if args.no_auto else auto_sim_death(args, tmp)
     if args.json:
         print(json.dumps({"rows": rows, "auto_sim_death": auto, "tracebacks_in_logs": tracebacks,
