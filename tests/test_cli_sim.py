@@ -61,13 +61,13 @@ def sim():
 
 def test_device_line(sim) -> None:
     proc, d = sim
-    assert set(d) == {"head", "odometry", "camera", "truth", "world", "pid"}
+    assert set(d) == {"head", "odometry", "camera", "truth", "faults", "world", "pid"}
     assert d["pid"] == proc.pid and d["world"] == "office"
     assert d["head"].startswith("/dev/pts/") and os.path.exists(d["head"])
     assert os.path.islink(d["odometry"]) and os.readlink(d["odometry"]).startswith("/dev/pts/")
-    for key in ("camera", "truth"):
+    for key in ("camera", "truth", "faults"):
         assert d[key].startswith("tcp://127.0.0.1:") and int(d[key].rsplit(":", 1)[1]) > 0
-    assert d["camera"] != d["truth"]
+    assert len({d["camera"], d["truth"], d["faults"]}) == 3
 
 
 def test_truth_stream_is_valid_and_50_hz(sim) -> None:
@@ -144,6 +144,52 @@ def test_sigusr1_unplugs_the_odometry_board_and_it_comes_back(sim) -> None:
         odo.close()
 
 
+def _fault_request(endpoint: str, payload: dict | bytes) -> dict:
+    ctx = zmq.Context.instance()
+    s = ctx.socket(zmq.REQ)
+    s.setsockopt(zmq.LINGER, 0)
+    s.connect(endpoint)
+    try:
+        s.send(payload if isinstance(payload, bytes) else json.dumps(payload).encode())
+        assert s.poll(5000), f"no reply to {payload!r}"
+        return json.loads(s.recv())
+    finally:
+        s.close(0)
+
+
+def test_fault_control_reaches_the_head_and_odometry_drivers(sim) -> None:
+    """CRC errors injected through the fault socket are counted by the real adapters' health;
+    when the fault's time is up, the devices answer cleanly again."""
+    proc, d = sim
+    assert _fault_request(d["faults"], b"{nope")["ok"] is False
+    assert "fraction" in _fault_request(d["faults"], {"cmd": "inject", "fault": "head_crc", "fraction": 7})["error"]
+    head = DynamixelHead(HeadConfig(port=d["head"]))
+    odo = SerialOdometry(OdometryConfig(port=d["odometry"]))
+    odo.open()
+    try:
+        assert head.open() and not head.read().stale
+        assert odo.read(timeout=3.0), "no odometry"
+        for fault in ("head_crc", "odometry_crc"):
+            r = _fault_request(d["faults"], {"cmd": "inject", "fault": fault, "duration_s": 1.0})
+            assert r["ok"] is True and fault in r["active"], r
+        t_end = time.monotonic() + 0.8
+        while time.monotonic() < t_end:
+            head.read()
+            odo.read(timeout=0.1)
+        assert head.health().counters["crc_errors"] >= 3
+        assert odo.health().counters["corrupt_lines"] >= 10
+        time.sleep(0.5)  # the faults end on time
+        assert _fault_request(d["faults"], {"cmd": "status"})["active"] == {}
+        odo.read()
+        corrupt = odo.health().counters["corrupt_lines"]
+        assert not head.read().stale and odo.read(timeout=1.0)
+        assert odo.health().counters["corrupt_lines"] <= corrupt + 1  # a line cut at the end at most
+    finally:
+        head.close()
+        odo.close()
+    assert proc.poll() is None
+
+
 def test_sigterm_exits_zero_and_cleans_up(sim) -> None:
     proc, d = sim
     link_dir = os.path.dirname(d["odometry"])
@@ -159,7 +205,7 @@ def test_sigterm_exits_zero_and_cleans_up(sim) -> None:
         assert not os.path.exists(path) or os.stat(path).st_ctime >= t_stop, path
     ctx = zmq.Context()  # the ports are free again
     try:
-        for key in ("camera", "truth"):
+        for key in ("camera", "truth", "faults"):
             s = ctx.socket(zmq.PUB)
             s.setsockopt(zmq.LINGER, 0)
             s.bind(d[key])
@@ -175,6 +221,7 @@ def test_sigterm_exits_zero_and_cleans_up(sim) -> None:
         (["--start=-5,0,0"], "not free"),
         (["--lighting", "disco"], "unknown lighting"),
         (["--scene-changes", "boxes,aliens"], "unknown scene change"),
+        (["--fault-endpoint", "tcp://0.0.0.0:5999"], "not a loopback endpoint"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(args: list[str], reason: str, capsys) -> None:

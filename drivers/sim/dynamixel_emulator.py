@@ -14,9 +14,15 @@ Fault injection (thread-safe, switch at any time):
 
 - ``set_no_reply(id, True)``: the servo stays silent (the adapter times out);
 - ``corrupt_replies(n)``: the next ``n`` status packets go out with a wrong CRC;
+- ``set_corruption_rate(p)``: from now on each status packet goes out with a wrong CRC with
+  probability ``p`` (seeded; 0 stops it);
 - ``set_hardware_error(id, bits)``: Hardware Error Status bits set, torque off, alert bit in
-  every status packet, until the servo is rebooted;
-- a reboot makes the servo silent for ``boot_time`` seconds and resets its RAM area.
+  every status packet, until the servo is rebooted; with ``persistent=True`` the fault comes
+  back after every reboot (the cause persists, e.g. an overload) until
+  ``clear_hardware_error(id)``, after which the next reboot clears it for good;
+- a reboot makes the servo silent for ``boot_time`` seconds and resets its RAM area;
+- ``disconnect()`` / ``reconnect()``: the USB adapter vanishes (the pty is closed, the ``link``
+  removed) and comes back on a new pty (the link re-pointed), as the odometry board does.
 
 Run it as its own process with ``python -m drivers.sim.dynamixel_emulator`` (prints the port).
 """
@@ -27,6 +33,7 @@ import argparse
 import json
 import math
 import os
+import random
 import select
 import signal
 import threading
@@ -79,6 +86,7 @@ class EmulatedServo:
     last_update: float = field(default_factory=time.monotonic)
     silent_until: float = 0.0
     no_reply: bool = False
+    persistent_error: int = 0  # Hardware Error Status bits raised again after every reboot
 
     def __post_init__(self) -> None:
         t = self.table
@@ -165,6 +173,7 @@ class DynamixelBusEmulator:
         *,
         boot_time: float = 0.05,
         link: str | None = None,
+        seed: int = 0,
     ) -> None:
         self.servos: dict[int, EmulatedServo] = {i: EmulatedServo(i) for i in ids}
         self.boot_time = boot_time
@@ -172,6 +181,8 @@ class DynamixelBusEmulator:
         self._lock = threading.RLock()
         self._parser = PacketParser()
         self._corrupt_budget = 0
+        self._corrupt_rate = 0.0
+        self._rng = random.Random(seed)
         self._thread: threading.Thread | None = None
         self._stop_r, self._stop_w = -1, -1
         self.instructions: Counter[str] = Counter()  # what the adapter sent, by name
@@ -219,13 +230,50 @@ class DynamixelBusEmulator:
         with self._lock:
             self._corrupt_budget = n
 
-    def set_hardware_error(self, dxl_id: int, bits: int) -> None:
-        """Raise Hardware Error Status bits (torque goes off) until the servo is rebooted."""
+    def set_corruption_rate(self, p: float) -> None:
+        """Send each status packet with a wrong CRC with probability ``p`` (0 <= p <= 1) from
+        now on; 0 stops it (a ``corrupt_replies`` budget is spent first either way)."""
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"corruption rate must be in [0, 1], got {p}")
+        with self._lock:
+            self._corrupt_rate = float(p)
+
+    def set_hardware_error(self, dxl_id: int, bits: int, persistent: bool = False) -> None:
+        """Raise Hardware Error Status bits (torque goes off) until the servo is rebooted; with
+        ``persistent`` they are raised again after every reboot until :meth:`clear_hardware_error`."""
         with self._lock:
             s = self.servos[dxl_id]
             s.advance(time.monotonic())
             s.table[XAddr.HARDWARE_ERROR_STATUS] |= bits & 0xFF
             s.table[XAddr.TORQUE_ENABLE] = 0
+            if persistent:
+                s.persistent_error |= bits & 0xFF
+
+    def clear_hardware_error(self, dxl_id: int) -> None:
+        """End a persistent hardware error: the bits set now stay until the next reboot (as on the
+        real servo, only a reboot clears Hardware Error Status)."""
+        with self._lock:
+            self.servos[dxl_id].persistent_error = 0
+
+    def disconnect(self) -> None:
+        """The bus adapter vanishes (USB unplugged): the pty is closed, the link removed."""
+        with self._lock:
+            self._pty.close()
+            self._parser = PacketParser()
+
+    def reconnect(self) -> str:
+        """The adapter comes back on a new pty (the link re-pointed); returns the slave path."""
+        with self._lock:
+            return self._pty.open()
+
+    @property
+    def connected(self) -> bool:
+        return self._pty.is_open
+
+    @property
+    def corruption_rate(self) -> float:
+        """The probability of a wrong CRC set by :meth:`set_corruption_rate`."""
+        return self._corrupt_rate
 
     # inspection --------------------------------------------------------------------------------
     def position_rad(self, dxl_id: int) -> float:
@@ -245,15 +293,19 @@ class DynamixelBusEmulator:
 
     # serving -----------------------------------------------------------------------------------
     def _serve(self) -> None:
-        fd = self._pty.master_fd
-        assert fd is not None
         while True:
-            ready, _, _ = select.select([fd, self._stop_r], [], [], 1.0)
+            fd = self._pty.master_fd  # None while disconnected; a new one after reconnect
+            try:
+                ready, _, _ = select.select([self._stop_r] + ([fd] if fd is not None else []), [], [],
+                                            1.0 if fd is not None else 0.05)
+            except (OSError, ValueError):  # closed by disconnect() during the select
+                continue
             if self._stop_r in ready:
                 return
-            if fd not in ready:
+            if fd is None or fd not in ready:
                 continue
-            data = self._pty.read(4096)
+            with self._lock:
+                data = self._pty.read(4096) if self._pty.master_fd == fd else b""
             if not data:
                 continue
             if self.wire_log is not None:
@@ -274,6 +326,8 @@ class DynamixelBusEmulator:
         wire = encode_status(servo.dxl_id, error | servo.alert, params)
         if self._corrupt_budget > 0:
             self._corrupt_budget -= 1
+            wire = wire[:-2] + bytes((wire[-2] ^ 0xFF, wire[-1]))
+        elif self._corrupt_rate > 0.0 and self._rng.random() < self._corrupt_rate:
             wire = wire[:-2] + bytes((wire[-2] ^ 0xFF, wire[-1]))
         return wire
 
@@ -341,8 +395,8 @@ class DynamixelBusEmulator:
         if inst == Inst.REBOOT:
             reply = self._status(s, 0)
             if not s.no_reply:
-                s.table[XAddr.HARDWARE_ERROR_STATUS] = 0
-                s.reset_ram()
+                s.reset_ram()  # Hardware Error Status is in RAM: cleared, unless the cause persists
+                s.table[XAddr.HARDWARE_ERROR_STATUS] = s.persistent_error
                 s.silent_until = time.monotonic() + self.boot_time
             return reply
         return self._status(s, StatusError.INSTRUCTION)

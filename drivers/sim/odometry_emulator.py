@@ -10,6 +10,9 @@ Fault injection (thread-safe):
 - ``drop_lines(n)``: the next n lines are not sent (sequence numbers still advance);
 - ``corrupt_lines(n)``: the next n lines have a digit changed after the checksum was computed;
 - ``split_lines(n)``: the next n lines are written in two pieces ``split_delay`` s apart;
+- ``set_fault_rate(kind, p, garbage_bytes=16)``: from now on each line gets the fault ``kind``
+  (``"garbage"``, ``"drop"``, ``"corrupt"``, ``"split"``) with probability ``p`` (seeded; 0
+  stops it), ``garbage_bytes`` random bytes for garbage;
 - ``disconnect()`` / ``reconnect()``: close the pty (the adapter's port vanishes) and open a new
   one; with ``link`` the stable symlink is removed and re-pointed at the new ``/dev/pts/N``, as
   udev does with ``/dev/serial/by-id`` (see docs/protocols.md).
@@ -32,6 +35,9 @@ import numpy as np
 
 from drivers.odometry_protocol import U32, format_line
 from drivers.sim.pty import PseudoTerminal
+
+#: The line faults :meth:`OdometryBoardEmulator.set_fault_rate` takes.
+FAULT_KINDS = ("garbage", "drop", "corrupt", "split")
 
 
 class OdometryBoardEmulator:
@@ -64,6 +70,8 @@ class OdometryBoardEmulator:
         self._drop = 0
         self._corrupt = 0
         self._split = 0
+        self._rates_p = dict.fromkeys(FAULT_KINDS, 0.0)
+        self._garbage_bytes = 16
         self._connected = False
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -145,6 +153,29 @@ class OdometryBoardEmulator:
         with self._lock:
             self._split += n
 
+    def set_fault_rate(self, kind: str, p: float, garbage_bytes: int = 16) -> None:
+        """Give each line from now on the fault ``kind`` (one of :data:`FAULT_KINDS`) with
+        probability ``p`` in [0, 1] (0 stops it); ``garbage_bytes`` random bytes per garbage
+        fault. Raises ValueError on an unknown kind or a p outside [0, 1]."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown line fault {kind!r} (one of {', '.join(FAULT_KINDS)})")
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"fault rate must be in [0, 1], got {p}")
+        if garbage_bytes < 1:
+            raise ValueError(f"garbage_bytes must be >= 1, got {garbage_bytes}")
+        with self._lock:
+            self._rates_p[kind] = float(p)
+            if kind == "garbage":
+                self._garbage_bytes = int(garbage_bytes)
+
+    def fault_rate(self, kind: str) -> float:
+        """The probability of the line fault ``kind`` set by :meth:`set_fault_rate`."""
+        return self._rates_p[kind]
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
     def disconnect(self) -> None:
         """The board vanishes (USB unplugged): the pty is closed, the link removed."""
         with self._lock:
@@ -187,6 +218,7 @@ class OdometryBoardEmulator:
                                math.floor(self._right) % U32)  # fmt: skip
             if not self._connected:
                 return
+            self._draw_faults()
             if self._drop > 0:
                 self._drop -= 1
                 self.lines_dropped += 1
@@ -207,6 +239,18 @@ class OdometryBoardEmulator:
         if split_piece is not None:
             time.sleep(self.split_delay)
             self._send(split_piece)
+
+    def _draw_faults(self) -> None:
+        """Turn the fault rates into this line's faults (caller holds the lock)."""
+        p = self._rates_p
+        if p["drop"] and self._rng.random() < p["drop"]:
+            self._drop += 1
+        if p["corrupt"] and self._rng.random() < p["corrupt"]:
+            self._corrupt += 1
+        if p["garbage"] and self._rng.random() < p["garbage"]:
+            self._garbage += self._garbage_bytes
+        if p["split"] and self._rng.random() < p["split"]:
+            self._split += 1
 
     def _corrupt_digit(self, line: bytes) -> bytes:
         digits = [i for i, ch in enumerate(line) if 48 <= ch <= 57 and i < line.index(b"*")]

@@ -27,6 +27,11 @@ robot, so that the daemon's real drivers are what runs against it:
   (:mod:`drivers.sim.frame_transport`). Rendering has its own thread so the base and the
   emulators keep real time; a render slower than the frame period lowers the frame rate
   (``stats()`` reports the achieved rate).
+- **camera faults** (:meth:`SimRobot.set_camera_fault`, thread-safe): ``stall`` (the camera
+  renders and sends nothing, the socket stays bound), ``unplug`` (the PUB socket is closed:
+  subscribers lose the connection; on the way back it is bound again at the same endpoint and
+  its sequence numbers restart from 0, as a replugged camera's do) and ``malformed`` (each
+  frame is replaced, with a probability, by a message that is not a valid frame).
 
 Stamps are seconds since the Unix epoch, taken from one monotonic clock anchored at start.
 Nothing here imports ``services``: the command (``services/commands/sim.py``) turns the
@@ -42,6 +47,7 @@ Usage::
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 import threading
@@ -58,7 +64,7 @@ from drivers.interfaces import CameraIntrinsics
 from drivers.odometry_protocol import arc_step
 from drivers.sim.drive import DrivePlanner, PlannerConfig
 from drivers.sim.dynamixel_emulator import DynamixelBusEmulator
-from drivers.sim.frame_transport import encode_frame
+from drivers.sim.frame_transport import FRAME_TOPIC, encode_frame
 from drivers.sim.free_space import FreeSpace
 from drivers.sim.odometry_emulator import OdometryBoardEmulator
 from drivers.sim.renderer import CameraModel, Renderer
@@ -76,6 +82,8 @@ TILT_QUANTUM = 0.01
 SIM_PLANNER = PlannerConfig(accel=0.5, angular_accel=2.0, pause_probability=0.3, max_pause_s=2.0)
 #: Clearance of the planner's goal segments beyond the robot's radius, m.
 GOAL_CLEARANCE = 0.11
+#: The camera faults :meth:`SimRobot.set_camera_fault` takes.
+CAMERA_FAULTS = ("stall", "unplug", "malformed")
 
 
 class SimRobotConfig(BaseModel):
@@ -278,6 +286,10 @@ class SimRobot:
         self._render_times: collections.deque[float] = collections.deque(maxlen=500)
         self._frame_monos: collections.deque[float] = collections.deque(maxlen=100)
         self._callback_errors = 0
+        self._camera_fault: dict[str, float] = {}  # kind -> fraction (1.0 for stall, unplug)
+        self._fault_rng = np.random.default_rng((c.seed, 29))
+        self._malformed_sent = 0
+        self._camera_seq = 0
 
     # ---------------------------------------------------------------------------------------
     def _check_start(self, start: tuple[float, float, float], exact: bool) -> None:
@@ -418,6 +430,8 @@ class SimRobot:
                 "frames": self._frames,
                 "frames_unsent": self._frames_unsent,
                 "callback_errors": self._callback_errors,
+                "malformed_frames_sent": self._malformed_sent,
+                "camera_faults": len(self._camera_fault),
             }
         out["fps"] = (len(fm) - 1) / (fm[-1] - fm[0]) if len(fm) > 2 and fm[-1] > fm[0] else 0.0
         out["render_ms_p50"] = 1000.0 * rt[len(rt) // 2] if rt else 0.0
@@ -522,14 +536,71 @@ class SimRobot:
         log.info("sim robot: lighting switched to %s", lighting)
 
     # camera --------------------------------------------------------------------------------------
+    def set_camera_fault(self, kind: str, on: bool, fraction: float = 1.0) -> None:
+        """Start (``on``) or end a camera fault: ``stall``, ``unplug`` or ``malformed`` (each
+        frame replaced with probability ``fraction``). Raises ValueError on an unknown kind."""
+        if kind not in CAMERA_FAULTS:
+            raise ValueError(f"unknown camera fault {kind!r} (one of {', '.join(CAMERA_FAULTS)})")
+        if not 0.0 < fraction <= 1.0:
+            raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+        with self._stats_lock:
+            if on:
+                self._camera_fault[kind] = fraction
+            else:
+                self._camera_fault.pop(kind, None)
+        log.warning("sim robot: camera %s %s", kind, "on" if on else "off")
+
+    def camera_faults(self) -> dict[str, float]:
+        """The active camera faults and their fractions."""
+        with self._stats_lock:
+            return dict(self._camera_fault)
+
+    def _camera_socket(self) -> zmq.Socket | None:
+        """The PUB socket, closed while the camera is unplugged and bound again (same endpoint)
+        when it is plugged back; None while unplugged or not yet bound again. Camera thread only."""
+        with self._stats_lock:
+            unplugged = "unplug" in self._camera_fault
+        if unplugged:
+            if self._sock is not None:
+                self._sock.close(0)
+                self._sock = None
+            return None
+        if self._sock is None and self._ctx is not None:
+            sock = self._ctx.socket(zmq.PUB)
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.setsockopt(zmq.SNDHWM, self.config.camera_sndhwm)
+            try:
+                sock.bind(self.camera_endpoint)
+            except zmq.ZMQError as exc:  # the port not free yet: try again at the next frame
+                sock.close(0)
+                log.warning("sim robot: camera cannot bind %s again yet: %s", self.camera_endpoint, exc)
+                return None
+            self._sock = sock
+            self._camera_seq = 0
+            log.info("sim robot: camera plugged back in on %s", self.camera_endpoint)
+        return self._sock
+
+    def _camera_skip(self, sock: zmq.Socket | None) -> bool:
+        """True when no frame is to be rendered now (stalled or unplugged); sends a malformed
+        message instead of the frame when that fault draws it (and returns True)."""
+        with self._stats_lock:
+            fault = dict(self._camera_fault)
+        if sock is None or "stall" in fault:
+            return True
+        p = fault.get("malformed", 0.0)
+        if p and self._fault_rng.random() < p:
+            with contextlib.suppress(zmq.ZMQError):
+                sock.send_multipart([FRAME_TOPIC, b'{"v": 1, "seq": "not a frame"', b"", b""], zmq.NOBLOCK)
+                self._malformed_sent += 1
+            return True
+        return False
+
     def _run_camera(self) -> None:
         c = self.config
         period = 1.0 / c.fps
-        renderer = self.renderer
-        sock = self._sock
-        assert renderer is not None and sock is not None
+        assert self.renderer is not None and self._sock is not None
         next_t = time.monotonic()
-        seq = 0
+        self._camera_seq = 0
         while not self._stop.is_set():
             now = time.monotonic()
             if now < next_t:
@@ -538,6 +609,11 @@ class SimRobot:
             next_t += period
             if next_t < now:
                 next_t = now + period  # rendering is slower than the frame rate
+            sock = self._camera_socket()
+            if self._camera_skip(sock):
+                continue
+            assert sock is not None
+            seq = self._camera_seq
             stamp = self.stamp_now()
             pan, tilt = self._head_angles()
             pose = self.pose_at(stamp)
@@ -576,7 +652,7 @@ class SimRobot:
                     with self._stats_lock:
                         self._callback_errors += 1
                     log.exception("sim robot: frame callback failed")
-            seq += 1
+            self._camera_seq = seq + 1
 
 
 def bind(sock: zmq.Socket, endpoint: str) -> str:

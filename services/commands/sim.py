@@ -9,12 +9,15 @@ Its FIRST line on stdout is one JSON object naming the devices (a contract that 
 
     {"head": "/dev/pts/N", "odometry": "/tmp/lino-loc-sim-XXXX/odometry",
      "camera": "tcp://127.0.0.1:PORT", "truth": "tcp://127.0.0.1:PORT2",
-     "world": "office", "pid": 1234}
+     "faults": "tcp://127.0.0.1:PORT3", "world": "office", "pid": 1234}
 
 ``odometry`` is a stable symlink to the board's current pseudo-terminal (it survives a
 simulated unplug, like ``/dev/serial/by-id``); ``head`` is the bus's pseudo-terminal. Then
 it logs to stderr, and on SIGINT/SIGTERM stops everything, removes what it created (ptys,
-links, sockets) and exits 0. SIGUSR1 unplugs the odometry board for 2 s (fault injection).
+links, sockets) and exits 0. SIGUSR1 unplugs the odometry board for 2 s (fault injection),
+SIGUSR2 switches the lights to ``--switch-lighting``. ``faults`` is the fault control, a REP
+socket on loopback that injects every fault of the emulators and the camera for a while
+(:mod:`drivers.sim.fault_control`; docs/protocols.md, section 6).
 
 Settings: flags > ``--config FILE`` (``[devices.camera.sim]`` for the world, lighting,
 scene changes, image size, fps and baseline; ``[devices.odometry]`` for the wheel radius,
@@ -164,6 +167,7 @@ def _exit_with_parent() -> None:
 def run_sim(args: argparse.Namespace) -> int:
     import zmq
 
+    from drivers.sim.fault_control import FaultController, FaultServer, OdometryUnplug
     from drivers.sim.robot import SimRobot, TruthSample, bind
     from services.messages import Pose2D, TruthMessage, encode
 
@@ -183,9 +187,10 @@ def run_sim(args: argparse.Namespace) -> int:
     ctx = zmq.Context()
     truth_sock = None
     robot = None
+    faults = None
+    control = None
     started = False
     truth_stats = {"sent": 0, "dropped": 0}
-    timers: list[threading.Timer] = []
     try:
         rc, truth_endpoint = robot_config(args, tmpdir)
         truth_sock = ctx.socket(zmq.PUB)
@@ -207,13 +212,23 @@ def run_sim(args: argparse.Namespace) -> int:
 
         robot = SimRobot(rc, on_truth=publish_truth, context=ctx)
         robot.world.check_lighting(args.switch_lighting)  # a bad name fails now, not at SIGUSR2
+        sim_robot = robot
+
+        def lights(name: str) -> None:  # bakes the lighting (seconds): off the caller's thread
+            threading.Thread(target=sim_robot.switch_lighting, args=(name,), name="light-switch",
+                             daemon=True).start()
+
+        control = FaultController(robot, lights)
+        faults = FaultServer(control, ctx, args.fault_endpoint)  # refuses a non-loopback endpoint
         robot.start()
         started = True
+        fault_endpoint = faults.start()
         line = {
             "head": robot.head_port,
             "odometry": robot.odometry_port,
             "camera": robot.camera_endpoint,
             "truth": truth_endpoint,
+            "faults": fault_endpoint,
             "world": robot.world.name,
             "pid": os.getpid(),
         }
@@ -235,21 +250,23 @@ def run_sim(args: argparse.Namespace) -> int:
             if unplug.is_set():
                 unplug.clear()
                 log.warning("sim: odometry board unplugged for 2 s (SIGUSR1)")
-                robot.odometry.disconnect()
-                timers.append(threading.Timer(2.0, robot.odometry.reconnect))
-                timers[-1].start()
+                try:
+                    control.inject(OdometryUnplug(cmd="inject", fault="odometry_unplug", duration_s=2.0))
+                except Exception:  # noqa: BLE001 - a fault that cannot be injected never stops the sim
+                    log.exception("sim: SIGUSR1: the odometry board could not be unplugged")
             if switch.is_set():
                 switch.clear()
                 log.warning("sim: switching the lights to %s (SIGUSR2)", args.switch_lighting)
-                threading.Thread(target=robot.switch_lighting, args=(args.switch_lighting,),
-                                 name="light-switch", daemon=True).start()
+                lights(args.switch_lighting)
             if args.stats_period and time.monotonic() >= next_report:
                 next_report += args.stats_period
                 log.info("sim: %s, truth %s", json.dumps(robot.stats()), json.dumps(truth_stats))
         return 0
     finally:
-        for t in timers:
-            t.cancel()
+        if faults is not None:
+            faults.stop()
+        if control is not None:
+            control.clear()
         if robot is not None:
             stats = robot.stats()
             robot.stop()
@@ -309,6 +326,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--truth-endpoint", help="PUB bind address of the true pose (default tcp://127.0.0.1:*)"
     )
     p.add_argument(
+        "--fault-endpoint",
+        default="tcp://127.0.0.1:*",
+        help="REP bind address of the fault control, loopback only (default tcp://127.0.0.1:*)",
+    )
+    p.add_argument(
         "--duration", type=_positive(float), metavar="S", help="stop after S seconds (benchmarks)"
     )
     p.add_argument(
@@ -329,9 +351,12 @@ on pseudo-terminals, rendered stereo camera) until SIGINT/SIGTERM, then remove w
 
 The first line on stdout is one JSON object naming the devices:
   {"head": "/dev/pts/N", "odometry": "<symlink to the board's pty>",
-   "camera": "tcp://127.0.0.1:PORT", "truth": "tcp://127.0.0.1:PORT2", "world": ..., "pid": ...}
+   "camera": "tcp://127.0.0.1:PORT", "truth": "tcp://127.0.0.1:PORT2",
+   "faults": "tcp://127.0.0.1:PORT3", "world": ..., "pid": ...}
 camera: ZeroMQ PUB of [b"frame", header JSON, left, right] (drivers.sim.frame_transport);
-truth: ZeroMQ PUB of [b"truth", TruthMessage JSON] at 50 Hz. Logs go to stderr.
+truth: ZeroMQ PUB of [b"truth", TruthMessage JSON] at 50 Hz; faults: ZeroMQ REP of JSON
+requests such as {"cmd": "inject", "fault": "odometry_crc", "duration_s": 3} or
+{"cmd": "clear"} (docs/protocols.md, section 6). Logs go to stderr.
 SIGUSR1 unplugs the odometry board for 2 s; SIGUSR2 switches the lights to --switch-lighting.
 Negative numbers: --start=-1,2,0.
 """
