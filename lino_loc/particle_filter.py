@@ -328,8 +328,15 @@ class AuxiliaryParticleFilter:
         self._reset_tracking()
         self._uniform_prior = True  # the next observation may seed from the sensor model
 
-    def set_pose(self, mean: ArrayLike, cov: ArrayLike) -> None:
-        """Gaussian belief around a known robot pose (heading wrapped)."""
+    def set_pose(self, mean: ArrayLike, cov: ArrayLike, confirmed: bool = True) -> None:
+        """Gaussian belief around a robot pose (heading wrapped).
+
+        ``confirmed=True`` (a pose given by an operator): the belief is trusted at once, state
+        ``tracking``. ``confirmed=False`` (a pose recalled from a saved state): the belief is
+        new and unconfirmed, state ``global`` until the views confirm it (``filter.lost.
+        confirm_views`` views' worth of hits, :attr:`LostDetector.confirmed`) and it has
+        converged (``filter.estimate``); a belief the views never confirm stays ``global``
+        and kidnap recovery treats it as a search."""
         n = self.config.n_particles
         m = np.asarray(mean, dtype=np.float64).reshape(3)
         c = np.asarray(cov, dtype=np.float64).reshape(3, 3)
@@ -338,6 +345,9 @@ class AuxiliaryParticleFilter:
         self._assign(x, Weights.uniform(n))
         self._reset_tracking()
         self._uniform_prior = False
+        if not confirmed:  # a search around a recalled pose: _update_state decides
+            self._state = "global"
+            return
         self.converged_once = True
         self._belief_converged = True
         self.lost_detector.confirm()  # a given pose needs no confirmation by the views
