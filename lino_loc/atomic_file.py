@@ -30,7 +30,7 @@ def temp_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """Whether a process with this pid exists (``kill(pid, 0)``: EPERM means it does)."""
     if pid <= 0:
         return False
@@ -62,7 +62,7 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
         if m is None or m.group("name") != path.name:
             continue
         pid = int(m.group("pid"))
-        if pid != me and _pid_alive(pid):
+        if pid != me and pid_alive(pid):
             continue
         with contextlib.suppress(OSError):
             if entry.is_file() and not entry.is_symlink():
