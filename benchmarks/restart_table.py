@@ -22,7 +22,7 @@ true pose). Acceptance: no ``tracking`` pose more than 0.5 m wrong.
 Usage::
 
     python benchmarks/restart_table.py                 # all rows, a table
-    python benchmarks/restart_table.py --json --rows 1s,other-map --window 40
+    python benchmarks/restart_table.py --json --rows 1s,other-map --window 40 --repeat 3
 """
 
 from __future__ import annotations
@@ -346,13 +346,13 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     print(f"acceptance (no tracking pose > {ACCEPT_M} m wrong): {'PASS' if not bad else 'FAIL ' + ','.join(bad)}")
 
 
-def run_rows(names: list[str], window: float, converge_timeout: float) -> list[dict[str, Any]]:
+def run_rows(names: list[str], window: float, converge_timeout: float, repeat: int = 1) -> list[dict[str, Any]]:
     from services.config import load_config
     from services.sim_launcher import ensure_sim_map
 
     results: list[dict[str, Any]] = []
     for drive in (True, False):
-        todo = [ROWS[n] for n in names if ROWS[n].drive == drive]
+        todo = [ROWS[n] for _ in range(repeat) for n in names if ROWS[n].drive == drive]
         if not todo:
             continue
         with tempfile.TemporaryDirectory(prefix="restart-table-") as d:
@@ -381,6 +381,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated, of {','.join(ROWS)}")
     ap.add_argument("--window", type=float, default=60.0, help="s recorded after each restart")
     ap.add_argument("--converge-timeout", type=float, default=120.0, help="s to wait for tracking before a kill")
+    ap.add_argument("--repeat", type=int, default=1, help="run each row this many times")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args(argv)
     names = [n for n in args.rows.split(",") if n]
@@ -388,7 +389,10 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"--rows: unknown row {unknown[0]!r} (known: {','.join(ROWS)})", file=sys.stderr)
         return 2
-    rows = run_rows(names, args.window, args.converge_timeout)
+    if args.repeat < 1:
+        print(f"--repeat: must be >= 1, got {args.repeat}", file=sys.stderr)
+        return 2
+    rows = run_rows(names, args.window, args.converge_timeout, args.repeat)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:

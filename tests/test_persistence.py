@@ -268,3 +268,14 @@ def test_simulator_folders_of_dead_processes_are_removed(tmp_path: Path) -> None
         d.mkdir()
     assert remove_stale_sim_folders(tmp_path) == [stale]
     assert {p.name for p in tmp_path.iterdir()} == {mine.name, old_style.name, other.name}
+
+
+def test_a_restored_spread_grows_with_the_states_age() -> None:
+    from services.daemon import RESTORE_MAX_STD, RESTORE_MIN_STD, restore_min_std
+
+    np.testing.assert_allclose(restore_min_std(0.0), RESTORE_MIN_STD)
+    np.testing.assert_allclose(restore_min_std(-5.0), RESTORE_MIN_STD)  # a stamp slightly ahead
+    np.testing.assert_allclose(restore_min_std(1e6), RESTORE_MAX_STD)
+    a, b = restore_min_std(1.0), restore_min_std(2.0)
+    assert np.all(b >= a) and b[0] > a[0]
+    assert restore_min_std(2.0)[0] > 0.5  # past the filter's converged_std_xy: re-converge first
