@@ -187,7 +187,7 @@ def test_just_inside_the_margin_is_reusable() -> None:
 def test_max_age_is_a_setting() -> None:
     from services.persistence import PersistenceConfig
 
-    assert PersistenceConfig().max_age_s == 600.0
+    assert PersistenceConfig().max_age_s == 30.0
     assert PersistenceConfig(max_age_s=60).max_age_s == 60.0
     with pytest.raises(ValueError):
         PersistenceConfig(max_age_s=0)
