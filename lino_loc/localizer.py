@@ -172,9 +172,11 @@ class Localizer:
         """The filter's current estimate, stamped with ``stamp``."""
         return replace(self.filter.estimate(), stamp=stamp)
 
-    def set_pose(self, mean: ArrayLike, cov: ArrayLike) -> None:
-        """Start tracking from a known robot pose with a Gaussian uncertainty."""
-        self.filter.set_pose(mean, cov)
+    def set_pose(self, mean: ArrayLike, cov: ArrayLike, confirmed: bool = True) -> None:
+        """A Gaussian belief around a robot pose: ``confirmed`` (an operator's pose) starts
+        ``tracking`` at once; unconfirmed (a recalled pose) stays ``global`` until the views
+        confirm it (:meth:`AuxiliaryParticleFilter.set_pose`)."""
+        self.filter.set_pose(mean, cov, confirmed)
 
     def start_global(self) -> None:
         """Forget the pose: uniform belief over the mapped area and all headings."""

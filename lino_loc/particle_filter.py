@@ -66,7 +66,7 @@ from lino_loc.apf import StepResult, apf_step
 from lino_loc.appearance_change import AppearanceChangeConfig, AppearanceChangeDetector
 from lino_loc.errors import LinoLocError
 from lino_loc.kidnap_recovery import KidnapRecovery, RecoveryConfig, Verdict, outlier_floor
-from lino_loc.lost_detection import LostConfig, LostDetector, independent_views
+from lino_loc.lost_detection import HIT_NATS, LostConfig, LostDetector, independent_views
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pose_estimate import (
     Estimate,
@@ -84,6 +84,13 @@ from lino_loc.weights import NoFiniteWeightError, Weights
 
 FloatArray = NDArray[np.float64]
 FreeSpace = Callable[[FloatArray], NDArray[np.bool_]]
+
+#: Independent views (``lino_loc.lost_detection.independent_views``) a recalled pose
+#: (``set_pose(..., confirmed=False)``) must explain IN A ROW, while converged, before it is
+#: ``tracking`` (on top of ``filter.lost.confirm_views``): the saved pose is a prior of
+#: unknown age, and a belief concentrated near it by one ambiguous view is often wrong
+#: (the restart table, benchmarks/restart_table.py, in docs/results.md).
+RECALL_CONFIRM_VIEWS = 3.0
 
 __all__ = [
     "AuxiliaryParticleFilter",
@@ -303,6 +310,7 @@ class AuxiliaryParticleFilter:
         self._state: State = "global"
         self._belief_converged = False  # the current belief has converged (since its start)
         self.injected = 0
+        self._recall_run: float | None = None  # hit views in a row of an unconfirmed recalled pose
         self.recovery.reset()
         self.lost_detector.reset()
 
@@ -328,8 +336,16 @@ class AuxiliaryParticleFilter:
         self._reset_tracking()
         self._uniform_prior = True  # the next observation may seed from the sensor model
 
-    def set_pose(self, mean: ArrayLike, cov: ArrayLike) -> None:
-        """Gaussian belief around a known robot pose (heading wrapped)."""
+    def set_pose(self, mean: ArrayLike, cov: ArrayLike, confirmed: bool = True) -> None:
+        """Gaussian belief around a robot pose (heading wrapped).
+
+        ``confirmed=True`` (a pose given by an operator): the belief is trusted at once, state
+        ``tracking``. ``confirmed=False`` (a pose recalled from a saved state): the belief is
+        new and unconfirmed, state ``global`` until the views confirm it (``filter.lost.
+        confirm_views`` views' worth of hits, :attr:`LostDetector.confirmed`) and it has
+        converged (``filter.estimate``) and explained :data:`RECALL_CONFIRM_VIEWS`
+        independent views in a row (a miss restarts the count); a belief the views never
+        confirm stays ``global`` and kidnap recovery treats it as a search."""
         n = self.config.n_particles
         m = np.asarray(mean, dtype=np.float64).reshape(3)
         c = np.asarray(cov, dtype=np.float64).reshape(3, 3)
@@ -338,6 +354,10 @@ class AuxiliaryParticleFilter:
         self._assign(x, Weights.uniform(n))
         self._reset_tracking()
         self._uniform_prior = False
+        if not confirmed:  # a search around a recalled pose: _update_state decides
+            self._state = "global"
+            self._recall_run = 0.0
+            return
         self.converged_once = True
         self._belief_converged = True
         self.lost_detector.confirm()  # a given pose needs no confirmation by the views
@@ -437,10 +457,17 @@ class AuxiliaryParticleFilter:
 
     def _test_lost(self, ll: float, floor: float, d: FloatArray) -> None:
         """Step 3: the lost test on the likelihood's excess over the outlier floor; the hit
-        rate is learnt from trusted beliefs (tracking, or lost: slowly), not from a search."""
-        self.lost_detector.update(
-            ll - floor if math.isfinite(floor) else ll, d, learn=self._state != "global"
-        )
+        rate is learnt from trusted beliefs (tracking, or lost: slowly), not from a search.
+        For a recalled belief not yet confirmed, the run of hit views grows by this frame's
+        independent views on a hit and restarts on a miss (a frame without motion: neither)."""
+        excess = ll - floor if math.isfinite(floor) else ll
+        if self._recall_run is not None:
+            v = independent_views(d)
+            if excess > HIT_NATS:
+                self._recall_run += v
+            elif v > 0.0:
+                self._recall_run = 0.0
+        self.lost_detector.update(excess, d, learn=self._state != "global")
 
     def _recover(
         self,
@@ -593,10 +620,21 @@ class AuxiliaryParticleFilter:
             self.converged_once = True
             # "tracking" once the views have confirmed the new belief; until then it is still
             # a search (a belief concentrated by one ambiguous image is often wrong)
-            self._state = "tracking" if self.lost_detector.confirmed else "global"
+            self._state = "tracking" if self._confirmed() else "global"
+            if self._state == "tracking":
+                self._recall_run = None  # a recalled belief, confirmed: an ordinary one now
         else:
             self._belief_converged = False
+            self._recall_run = None if self._recall_run is None else 0.0
             self._state = "global"
+
+    def _confirmed(self) -> bool:
+        """The views' confirmation of the converged belief (:attr:`LostDetector.confirmed`);
+        for a recalled pose also a run of :data:`RECALL_CONFIRM_VIEWS` hit views in a row
+        while converged."""
+        if self._recall_run is not None and self._recall_run < RECALL_CONFIRM_VIEWS:
+            return False
+        return self.lost_detector.confirmed
 
     @property
     def state(self) -> State:

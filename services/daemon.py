@@ -42,8 +42,12 @@ traceback once, then rate-limited), counted in ``status`` (``update_errors``) an
 is skipped; after :data:`RESET_AFTER_FAILED_UPDATES` failures in a row the belief restarts as
 global localization.
 
-Starting belief: the saved pose and covariance when there is one (as AMCL does), its
-standard deviations raised to at least :data:`RESTORE_MIN_STD`; else global localization.
+Starting belief: the saved pose and covariance when the checks of
+:func:`services.persistence.refusal` pass (the same map, recent, inside the map, a sane
+covariance, saved while tracking), its standard deviations raised to at least
+:func:`restore_min_std` of its age, as a belief the views must confirm (state ``global``
+until they do); else global localization, with the refusal's reason in the log. Temporary
+files of an interrupted save are removed first.
 
 Usage::
 
@@ -66,6 +70,7 @@ import numpy as np
 import zmq
 
 from drivers.interfaces import Odometry, PanTiltHead, StereoCamera, StereoFrame
+from lino_loc.atomic_file import remove_stale_temps
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
 from lino_loc.pose_estimate import Estimate
@@ -85,16 +90,35 @@ from services.device_threads import (
     OdometryFactory,
     OdometryWorker,
 )
-from services.persistence import SavedState, StateSaver, load_state
+from services.persistence import RestoreContext, SavedState, StateSaver, load_state, refusal
 from services.publisher import PosePublisher, Publisher, RateLimiter
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
 from services.truth_relay import TruthRelay
 
 log = logging.getLogger("lino_loc.service")
 
-#: Minimum standard deviations added to a restored covariance (the robot may have been
-#: pushed while the daemon was down): 0.1 m, 0.1 m, 0.05 rad.
+#: Minimum standard deviations of a restored covariance (the robot may have been pushed
+#: while the daemon was down): 0.1 m, 0.1 m, 0.05 rad, growing with the saved state's age
+#: (the time since the save: up to ``persistence.save_period_s`` after a kill -9, plus the
+#: downtime) by :data:`RESTORE_DRIFT_PER_S`, a base driving on at a typical top speed
+#: (0.3 m/s, the simulated base's; 0.1 rad/s of turning), up to :data:`RESTORE_MAX_STD`.
+#: The odometry board's counters would tell how far the robot went since the save, but the
+#: odometry driver hands the daemon increments only, so the motion since the save is unknown
+#: and the spread grows with the time instead. After more than ~1.5 s the position spread
+#: exceeds ``filter.estimate.converged_std_xy`` (0.5 m): the views must concentrate the
+#: belief again before they confirm it (the restart table, benchmarks/restart_table.py, in
+#: docs/results.md).
 RESTORE_MIN_STD = (0.1, 0.1, 0.05)
+RESTORE_DRIFT_PER_S = (0.3, 0.3, 0.1)  # m/s, m/s, rad/s
+RESTORE_MAX_STD = (1.0, 1.0, 0.5)
+
+
+def restore_min_std(age_s: float) -> np.ndarray:
+    """Floor of a restored pose's standard deviations (x, y, theta) for a state ``age_s``
+    seconds old: min(RESTORE_MIN_STD + RESTORE_DRIFT_PER_S * age, RESTORE_MAX_STD)."""
+    age = max(0.0, float(age_s))
+    grown = np.asarray(RESTORE_MIN_STD) + np.asarray(RESTORE_DRIFT_PER_S) * age
+    return np.minimum(grown, np.asarray(RESTORE_MAX_STD))
 
 #: Frame periods without a frame before the loop dead-reckons (at least 1 s).
 CAMERA_TIMEOUT_PERIODS = 5.0
@@ -259,6 +283,7 @@ class Daemon:
         except OSError:
             self.publisher.close()
             raise
+        self._remove_leftovers()
         self._initial_belief()
         for w in self.workers.values():
             w.start()
@@ -271,20 +296,44 @@ class Daemon:
         self.notifier.ready(status_line(None, ep.pub, False))
         log.info("serving: poses on %s, control on %s", ep.pub, ep.rep)
 
+    def _remove_leftovers(self) -> None:
+        """Temporary files an interrupted save left next to the state file (kill -9 between
+        writing and renaming), by :func:`lino_loc.atomic_file.remove_stale_temps`'s pattern."""
+        removed = remove_stale_temps(self.cfg.persistence.state_file)
+        if removed:
+            log.info("removed %d temporary file(s) of an interrupted save next to %s",
+                     len(removed), self.cfg.persistence.state_file)  # fmt: skip
+
     def _initial_belief(self) -> None:
+        """The saved pose when :func:`services.persistence.refusal` finds nothing against it,
+        as an UNCONFIRMED belief (``global`` until the views confirm it), its standard
+        deviations raised to :func:`restore_min_std` of its age; else global localization,
+        the reason logged in one line."""
         p = self.cfg.persistence
         saved = load_state(p.state_file) if p.restore else None
         if saved is None:
             self.localizer.start_global()
-            log.info("initial belief: global localization (no saved pose)")
+            log.info("initial belief: global localization (%s)",
+                     "no saved pose" if p.restore else "persistence.restore = false")  # fmt: skip
             return
+        b = self.localizer.bounds
+        now = time.time()
+        why = refusal(saved, RestoreContext(
+            now, self.status.map_info.checksum, (b.x_min, b.x_max, b.y_min, b.y_max), p.max_age_s,
+        ))  # fmt: skip
+        if why is not None:
+            self.localizer.start_global()
+            log.warning("initial belief: global localization; saved pose in %s refused: %s",
+                        p.state_file, why)  # fmt: skip
+            return
+        age = max(0.0, now - saved.stamp)
         cov = saved.cov().copy()
-        floor = np.square(RESTORE_MIN_STD)
-        cov[np.diag_indices(3)] = np.maximum(np.diag(cov), floor)
-        self.localizer.set_pose(saved.mean(), cov)
+        cov[np.diag_indices(3)] = np.maximum(np.diag(cov), np.square(restore_min_std(age)))
+        self.localizer.set_pose(saved.mean(), cov, confirmed=False)
         log.info(
-            "initial belief: the saved pose (%.2f, %.2f, %.2f) from %s",
-            saved.pose.x, saved.pose.y, saved.pose.theta, p.state_file,
+            "initial belief: the saved pose (%.2f, %.2f, %.2f) from %s, %.0f s old, to be "
+            "confirmed by the views",
+            saved.pose.x, saved.pose.y, saved.pose.theta, p.state_file, age,
         )
 
     def request_stop(self) -> None:

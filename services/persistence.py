@@ -11,6 +11,16 @@ folder ``fsync``-ed): after a crash or ``kill -9`` the file holds either the old
 state, never a mixture. :func:`load_state` returns None for a missing file and, with a
 warning, for a corrupt, foreign or invalid one (the daemon then localizes globally).
 
+A saved state is reused only when :func:`refusal` finds nothing against it: saved while
+``tracking``, for the same map (its checksum), recent (``persistence.max_age_s``, and not
+stamped in the future beyond :data:`FUTURE_TOLERANCE_S`), inside the map's bounds (with
+:data:`BOUNDS_MARGIN_M`) and with a sane covariance (:data:`MAX_STD_XY_M`,
+:data:`MAX_STD_THETA_RAD`). Even then it is an unconfirmed belief: the filter reports
+``global`` until the views confirm it (``Localizer.set_pose(..., confirmed=False)``). The
+motion since the save is not checked: the odometry board's counters are absolute and outlive
+the daemon, but the driver hands out increments only, so the daemon widens the restored
+covariance with the state's age instead (``services.daemon.restore_min_std``).
+
 The daemon writes off its loop's thread: :class:`StateSaver` is a thread that writes the
 latest :class:`SavedState` handed to it (a newer one replaces one not yet written), and
 writes synchronously at shutdown and on the control socket's ``save_state``. Only a
@@ -27,8 +37,10 @@ Usage::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -50,6 +62,11 @@ class PersistenceConfig(BaseModel):
     state_file: Path = Field(Path("/var/lib/lino-loc/state.json"))
     save_period_s: float = Field(5.0, gt=0.0, description="seconds between saves")
     restore: bool = Field(True, description="start from the saved pose (as AMCL does)")
+    max_age_s: float = Field(
+        30.0, gt=0.0, description="a saved pose older than this (s, by its stamp) is not "
+        "reused: the robot may have moved meanwhile (30 s at 0.3 m/s: 9 m), and a search "
+        "around an old pose is no faster than a global localization",
+    )
 
     @field_validator("state_file")
     @classmethod
@@ -151,6 +168,71 @@ def load_state(path: str | Path) -> SavedState | None:
     except ValueError as exc:
         log.warning("%s: corrupt saved state (%s); ignoring it", path, exc)
         return None
+
+
+#: A saved stamp this far (s) ahead of the clock is still taken as now (clock steps, NTP);
+#: further ahead, the state is refused.
+FUTURE_TOLERANCE_S = 5.0
+#: A saved pose this far (m) outside the map's bounds is refused (the bounds already carry the
+#: sensor model's ``map_margin``).
+BOUNDS_MARGIN_M = 1.0
+#: Largest standard deviations of a saved covariance that is reused: position (m, the largest
+#: of the 2 x 2 block's eigenvalues' roots) and heading (rad). A ``tracking`` estimate's are
+#: below ``filter.estimate.converged_std_xy`` / ``converged_std_theta`` (0.5 m, 25 deg).
+MAX_STD_XY_M = 1.0
+MAX_STD_THETA_RAD = 0.8
+
+
+@dataclass(frozen=True)
+class RestoreContext:
+    """What a saved state is checked against at start: the clock (s since the epoch), the
+    loaded map's checksum (None: unknown), its bounds (x_min, x_max, y_min, y_max; m) and
+    the largest age (s)."""
+
+    now: float
+    map_checksum: str | None
+    bounds: tuple[float, float, float, float]
+    max_age_s: float
+
+
+def refusal(state: SavedState, ctx: RestoreContext) -> str | None:
+    """Why ``state`` must not be reused as the initial belief, in a few words naming the
+    value, or None when it may. Checked in order:
+
+    - saved while ``tracking`` (a global or lost belief is no pose);
+    - the same map: both checksums known and equal;
+    - recent: ``ctx.now - stamp <= max_age_s``, and not ahead of the clock by more than
+      :data:`FUTURE_TOLERANCE_S`;
+    - inside the map: (x, y) within the bounds widened by :data:`BOUNDS_MARGIN_M`;
+    - a sane covariance: finite and positive semi-definite (already checked on loading),
+      position std <= :data:`MAX_STD_XY_M`, heading std <= :data:`MAX_STD_THETA_RAD`.
+    """
+    if state.state != "tracking":
+        return f"saved while {state.state!r}, not 'tracking'"
+    if state.map_checksum is None or ctx.map_checksum is None:
+        return "no map checksum to compare (saved or loaded map)"
+    if state.map_checksum != ctx.map_checksum:
+        return (f"saved for another map (checksum {state.map_checksum[:12]}, the map's "
+                f"{ctx.map_checksum[:12]})")  # fmt: skip
+    age = ctx.now - state.stamp
+    if age > ctx.max_age_s:
+        return f"{age:.0f} s old (persistence.max_age_s = {ctx.max_age_s:g})"
+    if age < -FUTURE_TOLERANCE_S:
+        return f"stamped {-age:.0f} s in the future"
+    x0, x1, y0, y1 = ctx.bounds
+    m = BOUNDS_MARGIN_M
+    x, y = state.pose.x, state.pose.y
+    if not (x0 - m <= x <= x1 + m and y0 - m <= y <= y1 + m):
+        return (f"pose ({x:.2f}, {y:.2f}) outside the map's bounds x [{x0:.2f}, {x1:.2f}], "
+                f"y [{y0:.2f}, {y1:.2f}] (+{m:g} m)")  # fmt: skip
+    c = state.cov()
+    std_xy = math.sqrt(max(float(np.linalg.eigvalsh(c[:2, :2])[-1]), 0.0))
+    std_th = math.sqrt(max(float(c[2, 2]), 0.0))
+    if not (math.isfinite(std_xy) and std_xy <= MAX_STD_XY_M):
+        return f"position std {std_xy:.3g} m > {MAX_STD_XY_M:g} m"
+    if not (math.isfinite(std_th) and std_th <= MAX_STD_THETA_RAD):
+        return f"heading std {std_th:.3g} rad > {MAX_STD_THETA_RAD:g} rad"
+    return None
 
 
 class StateSaver(threading.Thread):

@@ -33,11 +33,13 @@ import json
 import logging
 import math
 import os
+import re
 import select
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -46,12 +48,49 @@ from pathlib import Path
 from typing import Any
 
 from lino_loc.appearance_map import DEFAULT_SIZE, AppearanceMap, build_map
+from lino_loc.atomic_file import pid_alive
 from lino_loc.errors import LinoLocError
 from services.config import AUTO, MapBuildConfig, ServiceConfig
 
 log = logging.getLogger("lino_loc.service.sim")
 
 SIDECAR_VERSION = 1
+
+#: ``lino-loc sim``'s working folder in the temp dir: ``lino-loc-sim-<pid>-<random>``.
+SIM_FOLDER_PREFIX = "lino-loc-sim-"
+_SIM_FOLDER_RE = re.compile(r"^lino-loc-sim-(?P<pid>[0-9]+)-[A-Za-z0-9_]+$")
+
+
+def sim_folder_prefix() -> str:
+    """The ``mkdtemp`` prefix of this process's simulator folder (its pid in the name)."""
+    return f"{SIM_FOLDER_PREFIX}{os.getpid()}-"
+
+
+def remove_stale_sim_folders(tmp: str | Path | None = None) -> list[Path]:
+    """Remove the simulator folders (``lino-loc-sim-<pid>-*`` in ``tmp``, default the temp
+    dir) of this user whose process ``<pid>`` is gone (killed before it could clean up).
+    A folder of a live process, of another user, or without a pid in its name is left
+    alone. Returns the removed folders."""
+    root = Path(tmp or tempfile.gettempdir())
+    removed: list[Path] = []
+    try:
+        entries = list(root.iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        m = _SIM_FOLDER_RE.match(entry.name)
+        if m is None or pid_alive(int(m.group("pid"))):
+            continue
+        try:
+            if entry.is_symlink() or not entry.is_dir() or entry.stat().st_uid != os.getuid():
+                continue
+        except OSError:
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        if not entry.exists():
+            removed.append(entry)
+    return removed
+    return True
 
 # --------------------------------------------------------------------------------------------
 # the child process

@@ -511,10 +511,40 @@ def test_kill_9_and_restart_resume_from_the_saved_pose(rig: Rig) -> None:
     assert a is not None and b is not None
     moved = math.hypot(b[0] - a[0], b[1] - a[1])
     d = math.hypot(first[0]["pose"]["x"] - saved["pose"]["x"], first[0]["pose"]["y"] - saved["pose"]["y"])
-    assert d < 0.5, (d, moved)  # resumed from the saved pose, not from a global belief
-    assert first[0]["state"] == "tracking"
-    assert first[0]["covariance"][0] < 0.5 and first[0]["covariance"][4] < 0.5  # concentrated
+    assert d < 1.0, (d, moved)  # resumed around the saved pose, not from a global belief
+    assert first[0]["covariance"][0] < 2.0 and first[0]["covariance"][4] < 2.0  # not spread over the map
+    # ... but not trusted: 'global' until the views confirm it (a quick row of
+    # benchmarks/restart_table.py: the robot moved since the save)
+    assert first[0]["state"] == "global", first[0]["state"]
     assert first[0]["seq"] < 20  # a new process (its update counter restarted)
+    assert "to be confirmed by the views" in rig.log.read_text()
+    _wait_tracking(rig, 60)
+    wrong = [(p["seq"], round(e, 2)) for p in s.poses_since(t_restart)
+             if p["state"] == "tracking" and (e := s.error(p)) is not None and e > 0.5]
+    assert not wrong, f"tracking poses more than 0.5 m wrong after the restart: {wrong}"
+
+
+def test_a_state_of_another_map_is_refused_at_restart(rig: Rig) -> None:
+    s = rig.stream
+    assert s is not None and rig.daemon is not None
+    _wait_tracking(rig, 60)
+    assert request(rig.rep, {"cmd": "save_state"})["ok"] is True
+    rig.daemon.send_signal(signal.SIGKILL)
+    rig.daemon.wait(10)
+    saved = json.loads(rig.state.read_text())
+    saved["map_checksum"] = "0" * 64
+    rig.state.write_text(json.dumps(saved))
+    leftover = rig.state.with_name(".state.json.tmp-999999-0badf00d")  # an interrupted save's
+    leftover.write_text("{")
+    t_restart = time.time()
+    rig.daemon = start_daemon(rig.cfg, rig.log)
+    s.wait_for(lambda: s.poses_since(t_restart)[:1], 60, f"a pose after the restart; log:\n{_log_tail(rig)}")
+    log = rig.log.read_text()
+    assert "refused: saved for another map" in log
+    assert not leftover.exists()
+    first = s.poses_since(t_restart)[0]
+    assert first["state"] == "global"
+    _wait_tracking(rig, 90)
 
 
 def test_odometry_failure_is_reported_and_the_daemon_keeps_running(rig: Rig) -> None:

@@ -383,3 +383,55 @@ def test_lost_state_when_the_views_stop_matching_the_belief() -> None:
         states.append(pf.state)
     assert "lost" in states[:20], states
     assert states[-10:] == ["lost"] * 10, states
+
+
+# --------------------------------------------------------------------- recalled poses
+
+
+def _recalled_run(start, truth, updates=30, seed=5):
+    """A filter given ``start`` unconfirmed (a recalled pose) while the robot is at ``truth``;
+    drive and observe; the states and errors per update."""
+    model, f = _synthetic_model()
+    pf = _filter(n=800, seed=seed)
+    pf.set_pose(start, np.diag([0.01, 0.01, 0.005]), confirmed=False)
+    first = pf.estimate().state
+    rng = np.random.default_rng(seed)
+    truth = np.asarray(truth, dtype=np.float64)
+    states, errors = [], []
+    for _ in range(updates):
+        truth, d = _drive(truth)
+        pf.update(d + rng.normal(0, 0.01, 3), 0.4, model.observe(f(camera_pose(truth, 0.4))[0] + rng.normal(0, 0.05, 8)))
+        est = pf.estimate()
+        states.append(est.state)
+        errors.append(float(np.hypot(*(est.pose[:2] - truth[:2]))))
+    return first, states, errors
+
+
+def test_an_unconfirmed_pose_is_global_until_the_views_confirm_it() -> None:
+    """A recalled pose that is right: ``global`` at once (not ``tracking``), ``tracking`` after
+    the views have confirmed it, and close to the truth from then on."""
+    first, states, errors = _recalled_run([2.0, 2.0, 0.3], [2.0, 2.0, 0.3])
+    assert first == "global"
+    assert "tracking" in states[:20], states
+    k = states.index("tracking")
+    assert states[0] == "global" or k == 0
+    assert all(e < 0.5 for s, e in zip(states, errors, strict=True) if s == "tracking"), (states, errors)
+
+
+def test_a_wrong_recalled_pose_is_never_reported_tracking_while_wrong() -> None:
+    """A recalled pose 2 m from the truth (the robot moved while the daemon was down): no
+    ``tracking`` estimate is more than 0.5 m wrong, and the search finds the robot."""
+    for seed in (5, 6, 7):
+        first, states, errors = _recalled_run([2.0, 2.0, 0.3], [4.0, 2.5, 0.3], updates=60, seed=seed)
+        assert first == "global"
+        bad = [(i, round(e, 2)) for i, (s, e) in enumerate(zip(states, errors, strict=True))
+               if s == "tracking" and e > 0.5]
+        assert not bad, (seed, bad, states)
+        # the search around the recalled pose finds the robot (17 updates measured, 3 seeds)
+        assert states[-1] == "tracking" and errors[-1] < 0.5, (seed, states, errors[-5:])
+
+
+def test_an_operators_pose_is_still_trusted_at_once() -> None:
+    pf = _filter(n=500)
+    pf.set_pose([2.0, 1.0, 0.0], np.diag([0.01, 0.01, 0.01]), confirmed=True)
+    assert pf.estimate().state == "tracking" and pf.lost_detector.confirmed

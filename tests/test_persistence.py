@@ -122,3 +122,160 @@ def test_only_a_tracking_estimate_is_saved() -> None:
     assert SavedState.of_estimate(estimate("lost")) is None
     s = SavedState.of_estimate(estimate("tracking", stamp=12.0), "abc")
     assert s is not None and s.stamp == 12.0 and s.map_checksum == "abc" and s.state == "tracking"
+
+
+# ----------------------------------------------------------------------- reuse checks
+
+from services.persistence import RestoreContext, refusal  # noqa: E402
+
+_NOW = 1.7e9 + 10.0
+_BOUNDS = (-1.0, 9.0, -3.0, 5.0)
+
+
+def _ctx(**kw: object) -> RestoreContext:
+    base: dict[str, object] = {"now": _NOW, "map_checksum": "abc", "bounds": _BOUNDS, "max_age_s": 600.0}
+    base.update(kw)
+    return RestoreContext(**base)  # type: ignore[arg-type]
+
+
+def _saved(**kw: object) -> SavedState:
+    s = _state()
+    return s.model_copy(update=kw)
+
+
+def test_a_recent_tracking_state_of_this_map_is_reusable() -> None:
+    assert refusal(_saved(), _ctx()) is None
+    assert refusal(_saved(stamp=_NOW + 3.0), _ctx()) is None  # small clock step tolerated
+
+
+@pytest.mark.parametrize(
+    ("update", "ctx", "needle"),
+    [
+        ({"state": "lost"}, {}, "saved while 'lost'"),
+        ({"state": "global"}, {}, "saved while 'global'"),
+        ({"map_checksum": "other"}, {}, "another map"),
+        ({"map_checksum": None}, {}, "no map checksum"),
+        ({}, {"map_checksum": None}, "no map checksum"),
+        ({"stamp": _NOW - 30 * 86400}, {}, "2592000 s old"),
+        ({"stamp": _NOW - 601}, {}, "persistence.max_age_s = 600"),
+        ({"stamp": _NOW + 10 * 365 * 86400}, {}, "in the future"),
+        ({"pose": {"x": 1410.0, "y": 0.0, "theta": 0.0}}, {}, "outside the map's bounds"),
+        ({"pose": {"x": 10.5, "y": 0.0, "theta": 0.0}}, {}, "outside the map's bounds"),
+        ({"pose": {"x": 0.0, "y": -4.2, "theta": 0.0}}, {}, "outside the map's bounds"),
+        ({"covariance": [1e6, 0, 0, 0, 1e6, 0, 0, 0, 0.01]}, {}, "position std"),
+        ({"covariance": [0.01, 0, 0, 0, 0.01, 0, 0, 0, 4.0]}, {}, "heading std"),
+    ],
+    ids=["lost", "global", "other-map", "no-saved-checksum", "no-map-checksum", "30-days",
+         "just-too-old", "future", "1410m-out", "just-outside-x", "just-outside-y", "cov-1e6",
+         "heading-spread"],
+)
+def test_refusals_name_their_reason(update: dict[str, object], ctx: dict[str, object], needle: str) -> None:
+    from services.messages import Pose2D
+
+    if "pose" in update:
+        update = {**update, "pose": Pose2D(**update["pose"])}  # type: ignore[arg-type]
+    why = refusal(_saved(**update), _ctx(**ctx))
+    assert why is not None and needle in why and "\n" not in why, why
+
+
+def test_just_inside_the_margin_is_reusable() -> None:
+    from services.messages import Pose2D
+
+    assert refusal(_saved(pose=Pose2D(x=9.9, y=5.9, theta=0.0)), _ctx()) is None
+
+
+def test_max_age_is_a_setting() -> None:
+    from services.persistence import PersistenceConfig
+
+    assert PersistenceConfig().max_age_s == 30.0
+    assert PersistenceConfig(max_age_s=60).max_age_s == 60.0
+    with pytest.raises(ValueError):
+        PersistenceConfig(max_age_s=0)
+
+
+# ----------------------------------------------------------------------- leftovers
+
+
+def test_temp_files_of_dead_writers_are_removed(tmp_path: Path) -> None:
+    """A writer killed between creating its temp file and renaming it leaves
+    ``.<name>.tmp-<pid>-<hex>``; remove_stale_temps removes those of dead processes only, and
+    nothing else."""
+    import subprocess
+    import sys
+
+    from lino_loc.atomic_file import remove_stale_temps, temp_name
+
+    target = tmp_path / "state.json"
+    save_state(target, _state())
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead_pid = int(dead.stdout)
+    stale = [tmp_path / f".state.json.tmp-{dead_pid}-{i:08x}" for i in range(3)]
+    live = tmp_path / f".state.json.tmp-{os.getppid()}-0000abcd"  # the test runner's parent lives
+    others = [tmp_path / ".other.json.tmp-1-00000000", tmp_path / "state.json.bak",
+              tmp_path / f".state.json.tmp-{dead_pid}-xyz"]
+    for f in [*stale, live, *others]:
+        f.write_text("{")
+    assert temp_name(target).name.startswith(f".state.json.tmp-{os.getpid()}-")
+    removed = remove_stale_temps(target)
+    assert sorted(removed) == sorted(stale)
+    left = {f.name for f in tmp_path.iterdir()}
+    assert left == {"state.json", live.name, *(o.name for o in others)}
+
+
+def test_kill_9_during_saves_leaves_no_temp_file_after_a_restart(tmp_path: Path) -> None:
+    """Writers killed with SIGKILL in a tight save loop: their temp files are removed at the
+    next start (remove_stale_temps), the state file is whole."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from lino_loc.atomic_file import remove_stale_temps
+
+    target = tmp_path / "state.json"
+    code = (
+        "import sys; from services.persistence import SavedState, save_state\n"
+        "s = SavedState.from_estimate((1, 2, 0), [0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.01], 1.7e9)\n"
+        "while True: save_state(sys.argv[1], s)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    for _ in range(5):
+        p = subprocess.Popen([sys.executable, "-c", code, str(target)], env=env)
+        time.sleep(1.0)
+        p.send_signal(signal.SIGKILL)
+        p.wait(5)
+    remove_stale_temps(target)
+    assert [f.name for f in tmp_path.iterdir()] == ["state.json"]
+    assert load_state(target) is not None
+
+
+def test_simulator_folders_of_dead_processes_are_removed(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from services.sim_launcher import remove_stale_sim_folders, sim_folder_prefix
+
+    dead_pid = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                                  capture_output=True, text=True, check=True).stdout)
+    stale = tmp_path / f"lino-loc-sim-{dead_pid}-ab12_cd"
+    (stale / "sub").mkdir(parents=True)
+    (stale / "sub" / "odometry").write_text("x")
+    mine = tmp_path / f"{sim_folder_prefix()}zz99"  # this (live) process's
+    old_style = tmp_path / "lino-loc-sim-k2j4h1"  # no pid: owner unknown, left alone
+    other = tmp_path / f"something-{dead_pid}-ab"
+    for d in (mine, old_style, other):
+        d.mkdir()
+    assert remove_stale_sim_folders(tmp_path) == [stale]
+    assert {p.name for p in tmp_path.iterdir()} == {mine.name, old_style.name, other.name}
+
+
+def test_a_restored_spread_grows_with_the_states_age() -> None:
+    from services.daemon import RESTORE_MAX_STD, RESTORE_MIN_STD, restore_min_std
+
+    np.testing.assert_allclose(restore_min_std(0.0), RESTORE_MIN_STD)
+    np.testing.assert_allclose(restore_min_std(-5.0), RESTORE_MIN_STD)  # a stamp slightly ahead
+    np.testing.assert_allclose(restore_min_std(1e6), RESTORE_MAX_STD)
+    a, b = restore_min_std(1.0), restore_min_std(2.0)
+    assert np.all(b >= a) and b[0] > a[0]
+    assert restore_min_std(2.0)[0] > 0.5  # past the filter's converged_std_xy: re-converge first

@@ -7,7 +7,7 @@ on a second PUB socket as ``[b"truth", TruthMessage JSON]`` (services.messages).
 
 Its FIRST line on stdout is one JSON object naming the devices (a contract that `lino-loc run` and the tests read)::
 
-    {"head": "/dev/pts/N", "odometry": "/tmp/lino-loc-sim-XXXX/odometry",
+    {"head": "/dev/pts/N", "odometry": "/tmp/lino-loc-sim-<pid>-XXXX/odometry",
      "camera": "tcp://127.0.0.1:PORT", "truth": "tcp://127.0.0.1:PORT2",
      "faults": "tcp://127.0.0.1:PORT3", "world": "office", "pid": 1234}
 
@@ -183,7 +183,11 @@ def run_sim(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGUSR2, lambda *_: switch.set())
     if args.exit_with_parent:
         _exit_with_parent()
-    tmpdir = tempfile.mkdtemp(prefix="lino-loc-sim-")
+    from services.sim_launcher import remove_stale_sim_folders, sim_folder_prefix
+
+    for stale in remove_stale_sim_folders():
+        log.info("sim: removed %s (its simulator is gone)", stale)
+    tmpdir = tempfile.mkdtemp(prefix=sim_folder_prefix())
     ctx = zmq.Context()
     truth_sock = None
     robot = None
