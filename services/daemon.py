@@ -90,6 +90,7 @@ from services.device_threads import (
     OdometryFactory,
     OdometryWorker,
 )
+from services.messages import PersistenceInfo
 from services.persistence import RestoreContext, SavedState, StateSaver, load_state, refusal
 from services.publisher import PosePublisher, Publisher, RateLimiter
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
@@ -264,8 +265,10 @@ class Daemon:
         )
         self.status = StatusReporter(
             self.mailbox, self.workers, map_info(amap, cfg.map.path), simulated=cfg.simulated,
-            sources=StatusSources(self._state, lambda: self.localizer.appearance_changes, self.active.info),
+            sources=StatusSources(self._state, lambda: self.localizer.appearance_changes,
+                                  self.active.info, self._persistence_info),
         )
+        self.initial_belief: str | None = None  # how the belief started (status)
 
     # ------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -313,8 +316,9 @@ class Daemon:
         saved = load_state(p.state_file) if p.restore else None
         if saved is None:
             self.localizer.start_global()
-            log.info("initial belief: global localization (%s)",
-                     "no saved pose" if p.restore else "persistence.restore = false")  # fmt: skip
+            self.initial_belief = "global localization: " + (
+                "no saved pose" if p.restore else "persistence.restore = false")
+            log.info("initial belief: %s", self.initial_belief)
             return
         b = self.localizer.bounds
         now = time.time()
@@ -323,6 +327,7 @@ class Daemon:
         ))  # fmt: skip
         if why is not None:
             self.localizer.start_global()
+            self.initial_belief = f"global localization: the saved pose was refused: {why}"
             log.warning("initial belief: global localization; saved pose in %s refused: %s",
                         p.state_file, why)  # fmt: skip
             return
@@ -330,11 +335,15 @@ class Daemon:
         cov = saved.cov().copy()
         cov[np.diag_indices(3)] = np.maximum(np.diag(cov), np.square(restore_min_std(age)))
         self.localizer.set_pose(saved.mean(), cov, confirmed=False)
-        log.info(
-            "initial belief: the saved pose (%.2f, %.2f, %.2f) from %s, %.0f s old, to be "
-            "confirmed by the views",
-            saved.pose.x, saved.pose.y, saved.pose.theta, p.state_file, age,
+        self.initial_belief = (
+            f"the saved pose ({saved.pose.x:.2f}, {saved.pose.y:.2f}, {saved.pose.theta:.2f}), "
+            f"{age:.0f} s old, to be confirmed by the views"
         )
+        log.info("initial belief: %s from %s", self.initial_belief, p.state_file)
+
+    def _persistence_info(self) -> PersistenceInfo:
+        return PersistenceInfo(initial_belief=self.initial_belief, saves=self.saver.saves,
+                               save_error=self.saver.last_error)
 
     def request_stop(self) -> None:
         """Ask the loop to end (safe from signal handlers and other threads)."""

@@ -327,6 +327,22 @@ class MapInfo(BaseModel):
     checksum: str | None = None
 
 
+class PersistenceInfo(BaseModel):
+    """The saved pose: how the daemon started, and the saves since."""
+
+    model_config = ConfigDict(extra="ignore", json_schema_serialization_defaults_required=True)
+
+    initial_belief: str | None = Field(
+        None, description="how the belief started: the saved pose reused (unconfirmed until "
+        "the views confirm it), or global localization and why (no saved pose, or the reason "
+        "the saved one was refused)"
+    )
+    saves: int = Field(0, ge=0, description="poses saved since start")
+    save_error: str | None = Field(
+        None, description="why the last save failed (None after a successful one)"
+    )
+
+
 class ActiveVisionInfo(BaseModel):
     """Active-vision switches as the daemon sees them."""
 
@@ -374,6 +390,7 @@ class StatusMessage(_Published):
     uptime_s: Finite = Field(ge=0.0)
     map: MapInfo | None = None
     active_vision: ActiveVisionInfo | None = None
+    persistence: PersistenceInfo | None = None
     simulated: bool = False
     version: str | None = Field(None, description="software version of the daemon")
 

@@ -123,6 +123,8 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
             "active_vision": {"enabled": True, "paused": False, "head_paused": False, "head_commands": 3,
                               "last_decision": "converged", "last_command_rad": 0.0,
                               "frames_head_moving": 12},
+            "persistence": {"initial_belief": "the saved pose (2.41, 1.07, 1.57), 3 s old, to be "
+                            "confirmed by the views", "saves": 366, "save_error": None},
             "simulated": False, "version": "0.1.0",
         },
     ],

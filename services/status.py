@@ -48,6 +48,7 @@ from services.messages import (
     DeviceHealthModel,
     LatencyStats,
     MapInfo,
+    PersistenceInfo,
     StatusMessage,
 )
 
@@ -91,11 +92,13 @@ def map_info(amap: Any, configured_path: Any) -> MapInfo:
 @dataclass(frozen=True)
 class StatusSources:
     """Where the reporter reads what others own: the filter's state (``"starting"`` before
-    the first estimate), its count of appearance changes, and the active-vision switches."""
+    the first estimate), its count of appearance changes, the active-vision switches and the
+    saved pose's story (how the belief started, the saves)."""
 
     state: Callable[[], str]
     appearance_changes: Callable[[], int]
     active_vision: Callable[[], ActiveVisionInfo | None]
+    persistence: Callable[[], PersistenceInfo | None] = lambda: None
 
 
 class StatusReporter:
@@ -240,6 +243,7 @@ class StatusReporter:
             uptime_s=self._clock() - self._started,
             map=self.map_info,
             active_vision=av,
+            persistence=self.sources.persistence(),
             simulated=self.simulated,
             version=__version__,
         )

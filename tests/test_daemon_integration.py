@@ -544,6 +544,8 @@ def test_a_state_of_another_map_is_refused_at_restart(rig: Rig) -> None:
     assert not leftover.exists()
     first = s.poses_since(t_restart)[0]
     assert first["state"] == "global"
+    persistence = request(rig.rep, {"cmd": "status"})["status"]["persistence"]
+    assert "refused: saved for another map" in persistence["initial_belief"]
     _wait_tracking(rig, 90)
 
 

@@ -96,3 +96,18 @@ def test_status_line() -> None:
     line = status_line(r.build(), "tcp://x:1", True)
     assert line.startswith("tracking at 0.0 Hz, 2 frames dropped, DEAD RECKONING")
     assert line.endswith("; head failed")
+
+
+def test_the_message_carries_the_saved_pose_story() -> None:
+    from services.messages import PersistenceInfo
+
+    r, _ = _reporter()
+    assert r.build().persistence is None  # a source that reports nothing
+    info = PersistenceInfo(initial_belief="global localization: the saved pose was refused: old",
+                           saves=3, save_error="/x/state.json: Permission denied")
+    r.sources = StatusSources(state=lambda: "global", appearance_changes=lambda: 0,
+                              active_vision=lambda: None, persistence=lambda: info)
+    msg = r.build()
+    assert msg.persistence == info
+    again = type(msg).model_validate_json(msg.model_dump_json())
+    assert again.persistence is not None and again.persistence.save_error == info.save_error
