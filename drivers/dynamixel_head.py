@@ -16,7 +16,9 @@ Faults never raise into the caller:
   is DEGRADED until a clean read;
 - a servo reporting a hardware error is rebooted (logged and counted as ``reboots``), then its
   profile velocity, goal and torque are restored; more than ``max_reboots`` reboots within a
-  minute leave it off and the health FAILED;
+  minute leave it off and the health FAILED, until ``GIVEN_UP_RETRY_S`` later a new round of
+  reboots is tried (an overheated or overloaded servo has cooled down by then, and only a
+  reboot clears its error status);
 - a port that cannot be opened or vanishes leaves the health FAILED and is reopened on later
   calls, after a pause that doubles per failed attempt from ``RECONNECT_BACKOFF_MIN`` up to
   ``reconnect_backoff_max`` and falls back to the minimum after a successful set-up
@@ -80,6 +82,9 @@ SDK_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 5760
 
 #: First delay between reopen attempts, s (doubling per failure up to ``reconnect_backoff_max``).
 RECONNECT_BACKOFF_MIN = 0.1
+#: A servo given up (``max_reboots`` reboots within a minute) gets a new round of reboots this
+#: long after, s; its torque stays off in between.
+GIVEN_UP_RETRY_S = 60.0
 
 _BLOCK_START = XAddr.TORQUE_ENABLE  # 64
 _BLOCK_LEN = XAddr.PRESENT_POSITION + 4 - _BLOCK_START  # 72 bytes: 64..135
@@ -160,7 +165,7 @@ class DynamixelHead:
         self._state = HeadState(stamp=0.0, pan=0.0, tilt=0.0, moving=False, stale=True)
         self._last_read_mono = -1e9
         self._reboot_times: dict[int, deque[float]] = {i: deque() for i in self._ids}
-        self._given_up: set[int] = set()
+        self._given_up: dict[int, float] = {}  # servo id -> when it was given up (monotonic)
         self._closed = False
 
     # ---------------------------------------------------------------------------------------
@@ -338,15 +343,18 @@ class DynamixelHead:
         c = self.config
         name = self._names[dxl_id]
         what = f"servo {dxl_id} ({name}) reported hardware error {describe_hardware_error(bits)}"
-        self._health.count("hardware_errors")
-        if dxl_id in self._given_up:
-            return
         now = time.monotonic()
         times = self._reboot_times[dxl_id]
+        if dxl_id in self._given_up:
+            if not c.auto_reboot or now - self._given_up[dxl_id] < GIVEN_UP_RETRY_S:
+                return
+            del self._given_up[dxl_id]  # cooled down: a new round of reboots
+            times.clear()
+        self._health.count("hardware_errors")
         while times and now - times[0] > 60.0:
             times.popleft()
         if not c.auto_reboot or len(times) >= c.max_reboots:
-            self._given_up.add(dxl_id)
+            self._given_up[dxl_id] = now
             msg = f"{what}; not rebooting (auto_reboot={c.auto_reboot}, {len(times)} reboots in 60 s), torque off"
             log.error("head: %s", msg)
             self._health.error(msg, HealthState.FAILED)
@@ -476,14 +484,13 @@ class DynamixelHead:
         for dxl_id, _ in list(blocks.items()):
             hw = field(dxl_id, XAddr.HARDWARE_ERROR_STATUS, 1)
             if hw:
-                if dxl_id not in self._given_up:
-                    try:
-                        self._hardware_error(dxl_id, hw)
-                        recovered = True
-                    except _Fault as exc:
-                        problems.append(str(exc))
+                try:
+                    self._hardware_error(dxl_id, hw)  # rebooted, or still given up
+                    recovered = dxl_id not in self._given_up
+                except _Fault as exc:
+                    problems.append(str(exc))
                 continue
-            self._given_up.discard(dxl_id)
+            self._given_up.pop(dxl_id, None)
             try:
                 if not field(dxl_id, XAddr.TORQUE_ENABLE, 1):
                     self._health.count("torque_restores")

@@ -243,3 +243,28 @@ def test_config_validation() -> None:
         HeadConfig(baudrate=12345)
     with pytest.raises(ValueError):
         HeadConfig(pan_id=3, tilt_id=3)
+
+
+def test_a_given_up_servo_gets_a_new_round_of_reboots_after_the_retry_time(
+    emu: DynamixelBusEmulator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import drivers.dynamixel_head as dh
+
+    monkeypatch.setattr(dh, "GIVEN_UP_RETRY_S", 0.3)
+    head = DynamixelHead(make_config(emu.port, max_reboots=1))
+    assert head.open(), head.health()
+    try:
+        emu.set_hardware_error(1, HardwareError.OVERLOAD)
+        head.read()
+        emu.set_hardware_error(1, HardwareError.OVERLOAD)  # back at once: given up
+        head.read()
+        assert head.health().state is HealthState.FAILED and emu.instructions["REBOOT"] == 1
+        head.read()  # still within the retry time: no reboot, not counted again
+        assert emu.instructions["REBOOT"] == 1 and head.health().counters["hardware_errors"] == 2
+        time.sleep(0.35)
+        head.read()  # cooled down: rebooted, the error cleared, torque restored
+        assert emu.instructions["REBOOT"] == 2 and emu.register(1, XAddr.TORQUE_ENABLE) == 1
+        head.read()
+        assert head.health().state is HealthState.OK
+    finally:
+        head.close()
