@@ -9,7 +9,8 @@ Robustness (nothing here raises into the caller):
 - counters wrap modulo 2^32 (signed 32-bit difference);
 - a sequence gap (dropped lines) is counted; the counter difference is integrated anyway,
   since the counters are absolute, so no motion is lost;
-- a bad checksum, garbage or an over-long run without newline is counted and skipped;
+- a bad checksum, garbage or an over-long run without newline is counted and skipped, and
+  leaves the health DEGRADED (naming it) until ``NOISE_HOLD_S`` of clean lines;
 - a partial line is buffered until its newline arrives;
 - a line whose counters jump implausibly (board reset, ``seq`` restarting at 0) re-baselines
   the counters instead of integrating the jump;
@@ -56,6 +57,10 @@ from drivers.odometry_protocol import (
     wrap_delta,
 )
 from lino_loc.poses import compose
+
+#: Garbage or a corrupt line keeps the health DEGRADED for this long after it, s (then the
+#: next valid line makes it OK again).
+NOISE_HOLD_S = 1.0
 
 log = logging.getLogger("lino_loc.drivers.odometry")
 
@@ -105,6 +110,7 @@ class SerialOdometry:
         self._t_unwrapped_ms = 0
         self._offsets: collections.deque[tuple[float, float]] = collections.deque()
         self._last_valid = time.monotonic()
+        self._last_noise = -math.inf  # monotonic time of the last garbage or corrupt line
         self._connected_once = False
 
     # ---------------------------------------------------------------------------------------
@@ -210,7 +216,7 @@ class SerialOdometry:
                 if nl < 0:
                     if len(self._buf) > MAX_LINE:
                         self._health.count("garbage_bytes", len(self._buf))
-                        self._health.count("corrupt_lines")
+                        self._noise(f"{len(self._buf)} bytes without a newline skipped")
                         self._buf.clear()
                     break
                 line = bytes(self._buf[: nl + 1])
@@ -225,15 +231,16 @@ class SerialOdometry:
         start = line.rfind(b"$")  # line noise may precede a sentence on the same line
         if start < 0:
             self._health.count("garbage_bytes", len(line))
-            self._health.count("corrupt_lines")
+            self._noise(f"a line of {len(line)} bytes without a sentence skipped")
             return
         if start:
             self._health.count("garbage_bytes", start)
+            self._noise(f"{start} bytes of line noise before a sentence skipped", corrupt=False)
             line = line[start:]
         try:
             sample = parse_line(line)
         except LineError as exc:
-            self._health.count("corrupt_lines")
+            self._noise(f"corrupt line skipped ({exc})")
             log.debug("odometry: skipped line (%s)", exc)
             return
         self._health.count("lines")
@@ -310,6 +317,18 @@ class SerialOdometry:
             self._cond.notify_all()
         self._mark_ok()
 
+    def _noise(self, what: str, corrupt: bool = True) -> None:
+        """Line noise (``corrupt``: a whole line lost, counted): the health DEGRADED, naming
+        it, for ``NOISE_HOLD_S``."""
+        if corrupt:
+            self._health.count("corrupt_lines")
+        self._last_noise = time.monotonic()
+        if self._health.state is HealthState.OK:
+            self._health.error(f"odometry: {what}")
+
     def _mark_ok(self) -> None:
-        if self._health.state is not HealthState.OK:
+        if (
+            self._health.state is not HealthState.OK
+            and time.monotonic() - self._last_noise > NOISE_HOLD_S
+        ):
             self._health.set_state(HealthState.OK)
