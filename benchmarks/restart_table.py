@@ -28,219 +28,55 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import bisect
 import json
 import math
-import os
 import random
 import signal
-import socket
-import subprocess
 import sys
 import tempfile
-import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import zmq
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sim_service_rig import Rig, Settings, Stream, request  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-MAP_CACHE = Path(tempfile.gettempdir()) / "lino-loc-test-maps" / "office-80x60-50cm-15deg-5f.npz"
 ACCEPT_M = 0.5
+#: The integration tests' service at 5 fps, the pose saved every 5 s (the product's period).
+SETTINGS = Settings(fps=5.0, save_period_s=5.0)
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *[p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]])
-    for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env[v] = "1"
-    for k in [k for k in env if k.upper().startswith("LINO_LOC__") or k in ("NOTIFY_SOCKET", "WATCHDOG_USEC")]:
-        del env[k]
-    return env
+def since(stream: Stream, t: float) -> list[dict[str, Any]]:
+    """The poses received from ``t`` on."""
+    return stream.poses_between(t, math.inf)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def start_daemon(rig: Rig) -> float:
+    """Start the daemon; returns the wall time just before."""
+    t = time.time()
+    rig.start_daemon()
+    return t
 
 
-def config_text(*, pub: str, rep: str, state: Path, head: str = "auto", odometry: str = "auto",
-                camera: str = "auto", save_period_s: float = 5.0) -> str:
-    return f"""
-[devices.camera]
-kind = "sim"
-[devices.camera.sim]
-endpoint = "{camera}"
-world = "office"
-width = 80
-height = 60
-fps = 5.0
-[devices.head]
-kind = "dynamixel"
-port = "{head}"
-[devices.odometry]
-kind = "serial"
-port = "{odometry}"
-[map]
-path = "{MAP_CACHE}"
-[map.build]
-world = "office"
-step = 0.5
-heading_step_deg = 15.0
-width = 80
-height = 60
-features = 5
-[localizer.filter]
-n_particles = 1000
-[endpoints]
-pub = "{pub}"
-rep = "{rep}"
-[persistence]
-state_file = "{state}"
-save_period_s = {save_period_s}
-[logging]
-level = "INFO"
-"""
+def kill9(rig: Rig) -> None:
+    assert rig.daemon is not None
+    rig.daemon.send_signal(signal.SIGKILL)
+    rig.daemon.wait(10)
 
 
-@dataclass
-class Stream:
-    """Poses of the daemon and the simulator's truth, collected in a thread."""
-
-    pub: str
-    truth: str
-    poses: list[dict[str, Any]] = field(default_factory=list)
-    truths: list[tuple[float, float, float, float]] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        ctx = zmq.Context()
-        sub, ts = ctx.socket(zmq.SUB), ctx.socket(zmq.SUB)
-        sub.setsockopt(zmq.SUBSCRIBE, b"pose")
-        sub.connect(self.pub)
-        ts.setsockopt(zmq.SUBSCRIBE, b"truth")
-        ts.connect(self.truth)
-        poller = zmq.Poller()
-        poller.register(sub, zmq.POLLIN)
-        poller.register(ts, zmq.POLLIN)
-        while not self._stop.is_set():
-            for s, _ in poller.poll(100):
-                topic, payload = s.recv_multipart()
-                m = json.loads(payload)
-                m["_rx"] = time.time()
-                with self._lock:
-                    if s is sub and topic == b"pose":
-                        self.poses.append(m)
-                    elif s is ts:
-                        p = m["pose"]
-                        self.truths.append((m["stamp"], p["x"], p["y"], p["theta"]))
-        sub.close(0)
-        ts.close(0)
-        ctx.term()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-
-    def truth_at(self, stamp: float) -> tuple[float, float, float] | None:
-        with self._lock:
-            ts = [t[0] for t in self.truths]
-            i = bisect.bisect_left(ts, stamp)
-            if not ts or i >= len(ts) or (i == 0 and ts[0] - stamp > 0.05):
-                return None
-            return self.truths[i][1:]
-
-    def error(self, pose: dict[str, Any]) -> float | None:
-        t = self.truth_at(pose["stamp"])
-        return None if t is None else math.hypot(pose["pose"]["x"] - t[0], pose["pose"]["y"] - t[1])
-
-    def since(self, t: float) -> list[dict[str, Any]]:
-        with self._lock:
-            return [p for p in self.poses if p["_rx"] >= t]
-
-    def latest_truth(self) -> tuple[float, float, float, float]:
-        with self._lock:
-            return self.truths[-1]
-
-
-def request(endpoint: str, payload: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
-    s = zmq.Context.instance().socket(zmq.REQ)
-    s.setsockopt(zmq.LINGER, 0)
-    s.setsockopt(zmq.RCVTIMEO, int(timeout * 1000))
-    s.connect(endpoint)
-    try:
-        s.send(json.dumps(payload).encode())
-        return dict(json.loads(s.recv()))
-    finally:
-        s.close(0)
-
-
-class Rig:
-    """One simulator and the daemon under test (restarted per row)."""
-
-    def __init__(self, tmp: Path, *, drive: bool = True, seed: int = 0) -> None:
-        self.tmp = tmp
-        self.state = tmp / "state.json"
-        self.log = tmp / "daemon.log"
-        self.pub, self.rep = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
-        sim_cfg = tmp / "sim.toml"
-        sim_cfg.write_text(config_text(pub=self.pub, rep=self.rep, state=self.state))
-        extra = ["--seed", str(seed)] + ([] if drive else ["--no-drive"])
-        self.sim = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "sim", "--config", str(sim_cfg), "--stats-period", "0", *extra],
-            stdout=subprocess.PIPE, stderr=open(tmp / "sim.log", "ab"), env=_env(), cwd=ROOT,
-        )
-        assert self.sim.stdout is not None
-        info = json.loads(self.sim.stdout.readline())
-        self.cfg = tmp / "daemon.toml"
-        self.cfg.write_text(config_text(pub=self.pub, rep=self.rep, state=self.state, head=info["head"],
-                                        odometry=info["odometry"], camera=info["camera"]))
-        self.stream = Stream(self.pub, info["truth"])
-        self.daemon: subprocess.Popen[bytes] | None = None
-
-    def start_daemon(self) -> float:
-        t = time.time()
-        self.daemon = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "run", "--config", str(self.cfg)],
-            stdout=subprocess.DEVNULL, stderr=open(self.log, "ab"), env=_env(), cwd=ROOT,
-        )
-        return t
-
-    def kill9(self) -> None:
-        assert self.daemon is not None
-        self.daemon.send_signal(signal.SIGKILL)
-        self.daemon.wait(10)
-
-    def wait_tracking(self, timeout: float) -> bool:
-        t0 = time.time()
-        while time.time() - t0 < timeout:
-            ps = self.stream.since(t0)[-3:]
-            errs = [self.stream.error(p) for p in ps]
-            if len(ps) == 3 and all(p["state"] == "tracking" for p in ps) and all(
-                e is not None and e < ACCEPT_M for e in errs
-            ):
-                return True
-            time.sleep(0.2)
-        return False
-
-    def close(self) -> None:
-        for p in (self.daemon, self.sim):
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-                try:
-                    p.wait(20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait(5)
-        self.stream.close()
+def wait_tracking(stream: Stream, timeout: float) -> bool:
+    """Three poses in a row ``tracking`` and within ``ACCEPT_M`` of the truth, within ``timeout`` s."""
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        ps = since(stream, t0)[-3:]
+        errs = [stream.error(p) for p in ps]
+        if len(ps) == 3 and all(p["state"] == "tracking" for p in ps) and all(
+            e is not None and e < ACCEPT_M for e in errs
+        ):
+            return True
+        time.sleep(0.2)
+    return False
 
 
 @dataclass(frozen=True)
@@ -281,31 +117,30 @@ def _verdict(log: Path, offset: int) -> str:
     return "(no initial-belief line)"
 
 
-def measure(rig: Rig, row: Row, window: float) -> dict[str, Any]:
+def measure(rig: Rig, s: Stream, row: Row, window: float) -> dict[str, Any]:
     """One row on a rig whose daemon is tracking (see the module docstring)."""
-    s = rig.stream
     if not row.drive:  # a standing robot never confirms a global belief: an operator's pose
-        t = s.latest_truth()
+        t = s.truths[-1]
         request(rig.rep, {"cmd": "set_pose", "pose": {"x": t[1], "y": t[2], "theta": t[3]},
                           "covariance": [0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.003]})
         time.sleep(7.0)  # one periodic save of the operator's pose
-    rig.kill9()
+    kill9(rig)
     if not rig.state.exists():
         return {"row": row.name, "what": row.what, "error": "no saved state at the kill", "ok": False}
     saved = json.loads(rig.state.read_text())
     _edit_state(rig.state, row.edit)
     time.sleep(row.delay_s)
-    offset = rig.log.stat().st_size if rig.log.exists() else 0
-    t_restart = rig.start_daemon()
+    offset = rig.daemon_log.stat().st_size if rig.daemon_log.exists() else 0
+    t_restart = start_daemon(rig)
     deadline = t_restart + window
     first_track: dict[str, Any] | None = None
     while time.time() < deadline:
-        ps = s.since(t_restart)
+        ps = since(s, t_restart)
         first_track = next((p for p in ps if p["state"] == "tracking"), None)
         if first_track is not None and time.time() - first_track["_rx"] > 5.0:
             break  # five seconds of poses after the first tracking one
         time.sleep(0.2)
-    ps = s.since(t_restart)
+    ps = since(s, t_restart)
     a = s.truth_at(saved["stamp"])
     b = s.truth_at(ps[0]["stamp"]) if ps else None
     moved = None if a is None or b is None else math.hypot(b[0] - a[0], b[1] - a[1])
@@ -321,7 +156,7 @@ def measure(rig: Rig, row: Row, window: float) -> dict[str, Any]:
         "error_at_first_tracking_m": None if first_track is None else s.error(first_track),
         "max_tracking_error_m": max(tracking_errs) if tracking_errs else None,
         "tracking_poses": len(tracking_errs),
-        "verdict": _verdict(rig.log, offset),
+        "verdict": _verdict(rig.daemon_log, offset),
     }
     out["ok"] = out["max_tracking_error_m"] is None or out["max_tracking_error_m"] <= ACCEPT_M
     return out
@@ -347,32 +182,32 @@ def print_table(rows: list[dict[str, Any]]) -> None:
 
 
 def run_rows(names: list[str], window: float, converge_timeout: float, repeat: int = 1) -> list[dict[str, Any]]:
-    from services.config import load_config
-    from services.sim_launcher import ensure_sim_map
-
     results: list[dict[str, Any]] = []
     for drive in (True, False):
         todo = [ROWS[n] for _ in range(repeat) for n in names if ROWS[n].drive == drive]
         if not todo:
             continue
         with tempfile.TemporaryDirectory(prefix="restart-table-") as d:
-            tmp = Path(d)
-            rig = Rig(tmp, drive=drive)
+            rig = Rig(Path(d), SETTINGS)
+            stream: Stream | None = None
             try:
-                ensure_sim_map(load_config(rig.cfg))
-                rig.start_daemon()
+                rig.start_sim("--seed", "0", *([] if drive else ["--no-drive"]))
+                stream = Stream(rig.pub, rig.truth)
+                start_daemon(rig)
                 for row in todo:
-                    if drive and not rig.wait_tracking(converge_timeout):
+                    if drive and not wait_tracking(stream, converge_timeout):
                         results.append({"row": row.name, "what": row.what, "error": "never tracked before the kill",
                                         "ok": False})
                         continue
                     # at least one periodic save while tracking (every 5 s), then the kill
                     # lands at a random point of the save period
                     time.sleep(8.0 + 5.0 * random.random())
-                    results.append(measure(rig, row, window))
+                    results.append(measure(rig, stream, row, window))
                     print(f"# {row.name}: {json.dumps(results[-1])}", file=sys.stderr, flush=True)
             finally:
                 rig.close()
+                if stream is not None:
+                    stream.close()
     return results
 
 
