@@ -10,9 +10,11 @@ Valid requests go to a handler: :class:`ControlHandlers`, one method per request
 (:data:`ControlHandlers.dispatch`, keyed by the pydantic request model; a request class with
 no handler gets an error reply). Requests that change the filter
 (``set_pose``, ``global_localization``) must run in the loop's thread, between two
-updates: the handler puts them on a :class:`CommandQueue` and waits for the loop to apply
-them (:meth:`CommandQueue.call`, bounded by a timeout, so a busy loop gives an error reply
-rather than a hung client). Read-only requests (``status``, ``get_pose``, ``ping``) are
+updates: the handler puts them on a :class:`CommandQueue` and waits at most
+:data:`ACK_WAIT_S` for the loop to apply them (:meth:`CommandQueue.post`). The reply says
+either that the belief was set, or that the request is queued and will be applied before
+the next update (the loop is inside an update); a full queue gives an error reply. A
+queued command that fails in the loop is logged. So no reply waits for an update. Read-only requests (``status``, ``get_pose``, ``ping``) are
 answered from snapshots the loop keeps under a lock, without waiting for it.
 
 Usage::
@@ -86,6 +88,10 @@ CONTROL_MAX_FRAME_BYTES = 1024 * 1024
 CONTROL_RCVHWM = 8
 
 
+class LoopBusy(RuntimeError):
+    """The command queue is full: the loop is behind (the request is refused, not queued)."""
+
+
 class CommandQueue:
     """Functions to run in the loop's thread: ``call`` from any thread, ``run_pending`` in
     the loop. Bounded: when ``maxsize`` calls wait already, ``call`` fails at once."""
@@ -98,8 +104,20 @@ class CommandQueue:
         try:
             self._q.put_nowait((fn, fut))
         except queue.Full:
-            fut.set_exception(RuntimeError("too many pending control requests"))
+            fut.set_exception(LoopBusy("too many pending control requests, try again"))
         return fut
+
+    def post(self, fn: Callable[[], Any], wait: float) -> bool:
+        """Queue ``fn`` for the loop's thread and wait at most ``wait`` s for it: True when it
+        ran (raises its exception), False when it is still queued (an exception it raises
+        later is logged). Raises :class:`LoopBusy` when the queue is full."""
+        fut = self.submit(fn)
+        try:
+            fut.result(wait)
+            return True
+        except FutureTimeout:
+            fut.add_done_callback(_log_failure)
+            return False
 
     def call(self, fn: Callable[[], Any], timeout: float = 2.0) -> Any:
         """Run ``fn`` in the loop's thread and return its result (raises its exception,
@@ -129,6 +147,11 @@ class CommandQueue:
         return n
 
 
+def _log_failure(fut: Future[Any]) -> None:
+    if not fut.cancelled() and fut.exception() is not None:
+        log.warning("a queued control command failed in the loop: %s", fut.exception())
+
+
 def handle_raw(raw_frames: list[bytes], handler: Handler) -> bytes:
     """The reply bytes for one received message (never raises)."""
     try:
@@ -144,7 +167,7 @@ def handle_raw(raw_frames: list[bytes], handler: Handler) -> bytes:
                 cmd = getattr(req, "cmd", None)
                 try:
                     reply = handler(req)
-                except TimeoutError as exc:
+                except (TimeoutError, LoopBusy) as exc:
                     reply = error_reply(f"{cmd}: {exc}", cmd=cmd)
                 except Exception as exc:  # noqa: BLE001 - the control socket must never die
                     log.warning("control %s failed: %s: %s", cmd, type(exc).__name__, exc)
@@ -219,6 +242,12 @@ class ControlServer(threading.Thread):
             self._release_curve()
 
 
+#: Longest a ``set_pose`` / ``global_localization`` reply waits for the loop to apply it, s:
+#: the loop applies queued commands between two updates, and an update may take longer.
+ACK_WAIT_S = 0.05
+_QUEUED = "queued, applied before the next update: belief "
+
+
 class ControlHandlers:
     """The daemon's answers to the control requests, dispatched on the request's class.
 
@@ -286,16 +315,18 @@ class ControlHandlers:
         if problem is not None:
             log.info("set_pose refused: %s", problem)
             return error_reply(f"set_pose: {problem}", cmd="set_pose")
-        self.commands.call(lambda: self.localizer.set_pose(mean, cov))
+        done = self.commands.post(lambda: self.localizer.set_pose(mean, cov), ACK_WAIT_S)
         log.info("set_pose (%.2f, %.2f, %.2f) from the control socket", *mean)
-        return AckReply(
-            cmd="set_pose", message=f"belief set around ({mean[0]:.3f}, {mean[1]:.3f}, {mean[2]:.3f})"
-        )
+        where = f"around ({mean[0]:.3f}, {mean[1]:.3f}, {mean[2]:.3f})"
+        return AckReply(cmd="set_pose", message=f"belief set {where}" if done else _QUEUED + where)
 
     def global_localization(self, _req: GlobalLocalizationRequest) -> AckReply:
-        self.commands.call(self.localizer.start_global)
+        done = self.commands.post(self.localizer.start_global, ACK_WAIT_S)
         log.info("global localization requested on the control socket")
-        return AckReply(cmd="global_localization", message="belief spread over the map")
+        where = "over the map"
+        return AckReply(
+            cmd="global_localization", message=f"belief spread {where}" if done else _QUEUED + where
+        )
 
     def pause_or_resume(self, req: PauseRequest | ResumeRequest) -> ControlStateReply:
         self.active.set_paused(req.target, req.cmd == "pause")

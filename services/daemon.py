@@ -90,7 +90,7 @@ from services.device_threads import (
     OdometryFactory,
     OdometryWorker,
 )
-from services.messages import PersistenceInfo
+from services.messages import PersistenceInfo, PosePortInfo
 from services.persistence import RestoreContext, SavedState, StateSaver, load_state, refusal
 from services.publisher import PosePublisher, Publisher, RateLimiter
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
@@ -266,7 +266,7 @@ class Daemon:
         self.status = StatusReporter(
             self.mailbox, self.workers, map_info(amap, cfg.map.path), simulated=cfg.simulated,
             sources=StatusSources(self._state, lambda: self.localizer.appearance_changes,
-                                  self.active.info, self._persistence_info),
+                                  self.active.info, self._persistence_info, self._pose_port_info),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
 
@@ -344,6 +344,9 @@ class Daemon:
     def _persistence_info(self) -> PersistenceInfo:
         return PersistenceInfo(initial_belief=self.initial_belief, saves=self.saver.saves,
                                save_error=self.saver.last_error)
+
+    def _pose_port_info(self) -> PosePortInfo | None:
+        return self.publisher.info() if self.publisher is not None else None
 
     def request_stop(self) -> None:
         """Ask the loop to end (safe from signal handlers and other threads)."""

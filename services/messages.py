@@ -343,6 +343,25 @@ class PersistenceInfo(BaseModel):
     )
 
 
+class PosePortInfo(BaseModel):
+    """The pose port's subscribers as the daemon sees them (services/subscription_guard.py)."""
+
+    model_config = ConfigDict(extra="ignore", json_schema_serialization_defaults_required=True)
+
+    subscriptions: int = Field(
+        0, ge=0, description="distinct subscription prefixes held by the subscribers (libzmq's table)"
+    )
+    subscription_bytes: int = Field(0, ge=0, description="their summed length, bytes")
+    ignored_subscriptions: int = Field(
+        0, ge=0, description="subscriptions since start that match no topic (they get nothing)"
+    )
+    evicted_subscribers: int = Field(
+        0, ge=0, description="subscriber connections ended since start because the table "
+        "passed its cap (the one that sent the most each time)"
+    )
+    dropped_sends: int = Field(0, ge=0, description="messages ZeroMQ refused to queue since start")
+
+
 class ActiveVisionInfo(BaseModel):
     """Active-vision switches as the daemon sees them."""
 
@@ -391,6 +410,7 @@ class StatusMessage(_Published):
     map: MapInfo | None = None
     active_vision: ActiveVisionInfo | None = None
     persistence: PersistenceInfo | None = None
+    pose_port: PosePortInfo | None = None
     simulated: bool = False
     version: str | None = Field(None, description="software version of the daemon")
 

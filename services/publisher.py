@@ -16,13 +16,14 @@ so counts made from it leak.)
 
 What subscriptions can cost: only prefixes of a published topic (:data:`TOPIC_PREFIXES`, at
 most :data:`MAX_SUBSCRIPTION_BYTES` long, 24 distinct values for the four topics) can ever
-match a message; any
-other subscription is ignored (counted in :attr:`Publisher.ignored_subscriptions`, logged
-once), so the daemon's own view holds at most that many entries. At most
-:data:`MAX_SUBSCRIPTION_MESSAGES` subscription messages are read per publish, so a flood of
-them costs each publish a bounded time. libzmq keeps its own table of every distinct prefix
-subscribed: its cost grows with their number and length (``ZMQ_MAXMSGSIZE`` bounds the
-length), which the daemon cannot see.
+match a message; any other subscription is ignored (counted in
+:attr:`Publisher.ignored_subscriptions`, logged once), so the daemon's own view holds at most
+that many entries. At most :data:`MAX_SUBSCRIPTION_MESSAGES` subscription messages are read
+per publish, so a flood of them costs each publish a bounded time. libzmq keeps its own table
+of every distinct prefix subscribed, ignored ones included: ``ZMQ_MAXMSGSIZE``
+(:data:`PUB_MAX_FRAME_BYTES`) bounds a prefix's length, and
+:class:`services.subscription_guard.SubscriptionGuard` their number and summed length, by
+ending the connection of the subscriber that sent the most once a cap is passed.
 
 Never blocking: each subscriber has a send queue of ``sndhwm`` messages
 (``ZMQ_SNDHWM``); when a subscriber does not read, ZeroMQ drops further messages *for that
@@ -70,7 +71,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.pose_estimate import Estimate
 from services.curve_auth import CurveConfig, CurveKeyError, attach_server
-from services.messages import TOPICS, ParticlesMessage, PoseMessage, encode
+from services.messages import TOPICS, ParticlesMessage, PoseMessage, PosePortInfo, encode
+from services.subscription_guard import SubscriptionGuard
 
 log = logging.getLogger("lino_loc.service.publisher")
 
@@ -119,9 +121,11 @@ class RateLimiter:
 
 
 #: Largest frame a subscriber may send (``ZMQ_MAXMSGSIZE`` on the XPUB socket). Subscribers
-#: send only subscriptions, topic prefixes (the longest topic, ``particles``, is 9 bytes); a
-#: frame announced larger closes that subscriber's connection before anything is allocated.
-PUB_MAX_FRAME_BYTES = 4096
+#: send only subscriptions, topic prefixes (the longest topic, ``particles``, is 9 bytes), and
+#: their handshake, whose largest frame is CURVE's INITIATE command (about 300 bytes with
+#: a SUB's metadata); a frame announced larger closes that subscriber's connection before
+#: anything is allocated.
+PUB_MAX_FRAME_BYTES = 512
 
 
 class Publisher:
@@ -149,6 +153,7 @@ class Publisher:
             self._sock.close(linger=0)
             self._release_curve()
             raise OSError(f"cannot bind the PUB socket to {endpoint}: {exc}") from exc
+        self.guard = SubscriptionGuard(self._sock)
         self.sent: Counter[str] = Counter()
         self.dropped = 0
         self.subscriptions: set[bytes] = set()
@@ -163,14 +168,17 @@ class Publisher:
             try:
                 msg = self._sock.recv(zmq.NOBLOCK)
             except zmq.ZMQError:  # zmq.Again included: nothing more to read
-                return
+                break
             topic = bytes(msg[1:])
+            if msg[:1] in (b"\x00", b"\x01"):
+                self.guard.reported(msg[0] == 1, len(topic))
             if msg[:1] not in (b"\x00", b"\x01") or topic not in TOPIC_PREFIXES:
                 self._ignore(msg)
             elif msg[0] == 1:
                 self.subscriptions.add(topic)
             else:
                 self.subscriptions.discard(topic)
+        self.guard.enforce()
 
     def _ignore(self, msg: bytes) -> None:
         """Count a message that is not the (un)subscription of a topic prefix; log the first."""
@@ -199,6 +207,17 @@ class Publisher:
                 self._drain_subscriptions()
             return len(self.subscriptions)
 
+    def info(self) -> PosePortInfo:
+        """The subscribers' counters for the status."""
+        with self._lock:
+            return PosePortInfo(
+                subscriptions=self.guard.distinct,
+                subscription_bytes=self.guard.distinct_bytes,
+                ignored_subscriptions=self.ignored_subscriptions,
+                evicted_subscribers=self.guard.evicted,
+                dropped_sends=self.dropped,
+            )
+
     def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:
         """Send raw frames without blocking; False (and counted) if ZeroMQ refused."""
         name = topic or bytes(frames[0]).decode("ascii", errors="replace")
@@ -226,6 +245,7 @@ class Publisher:
         with self._lock:
             if not self._closed:
                 self._closed = True
+                self.guard.close()
                 self._sock.close(linger=0)
                 self._release_curve()
 

@@ -49,6 +49,7 @@ from services.messages import (
     LatencyStats,
     MapInfo,
     PersistenceInfo,
+    PosePortInfo,
     StatusMessage,
 )
 
@@ -92,13 +93,14 @@ def map_info(amap: Any, configured_path: Any) -> MapInfo:
 @dataclass(frozen=True)
 class StatusSources:
     """Where the reporter reads what others own: the filter's state (``"starting"`` before
-    the first estimate), its count of appearance changes, the active-vision switches and the
-    saved pose's story (how the belief started, the saves)."""
+    the first estimate), its count of appearance changes, the active-vision switches, the
+    saved pose's story (how the belief started, the saves) and the pose port's subscribers."""
 
     state: Callable[[], str]
     appearance_changes: Callable[[], int]
     active_vision: Callable[[], ActiveVisionInfo | None]
     persistence: Callable[[], PersistenceInfo | None] = lambda: None
+    pose_port: Callable[[], PosePortInfo | None] = lambda: None
 
 
 class StatusReporter:
@@ -244,6 +246,7 @@ class StatusReporter:
             map=self.map_info,
             active_vision=av,
             persistence=self.sources.persistence(),
+            pose_port=self.sources.pose_port(),
             simulated=self.simulated,
             version=__version__,
         )

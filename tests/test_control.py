@@ -79,6 +79,32 @@ def test_command_queue_runs_in_the_loop_thread() -> None:
     assert q.run_pending() == 1 and ran == []
 
 
+def test_post_waits_a_bounded_time_and_the_loop_applies_it_later(caplog) -> None:  # noqa: ANN001
+    """post: True when the loop ran it within ``wait``; False (at once after ``wait``) when
+    the loop is inside an update, then the loop runs it, and its failure is logged; a full
+    queue raises LoopBusy."""
+    import logging
+
+    from services.control import LoopBusy
+
+    caplog.set_level(logging.WARNING, logger="lino_loc.service.control")
+    q = CommandQueue(maxsize=2)
+    ran: list[int] = []
+    t0 = time.monotonic()
+    assert q.post(lambda: ran.append(1), wait=0.05) is False  # nobody runs the queue yet
+    assert 0.04 < time.monotonic() - t0 < 0.5 and ran == []
+    assert q.post(lambda: 1 / 0, wait=0.0) is False
+    with pytest.raises(LoopBusy, match="too many"):
+        q.post(lambda: None, wait=0.0)
+    assert q.run_pending() == 2 and ran == [1]  # queued commands run: not dropped
+    assert any("ZeroDivisionError" in r.getMessage() or "division" in r.getMessage()
+               for r in caplog.records)
+    runner = threading.Timer(0.01, q.run_pending)
+    runner.start()
+    assert q.post(lambda: ran.append(2), wait=2.0) is True and ran == [1, 2]
+    runner.join()
+
+
 def test_command_queue_is_bounded() -> None:
     q = CommandQueue(maxsize=2)
     q.submit(lambda: None)

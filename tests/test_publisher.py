@@ -175,6 +175,7 @@ def test_subscriptions_that_match_no_topic_are_ignored_counted_and_logged_once(c
     caplog.set_level(logging.WARNING, logger="lino_loc.service.publisher")
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
+    pub.guard.max_distinct = pub.guard.max_bytes = 10**9  # the view alone (the cap: below)
     endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
     hostile, raw = ctx.socket(zmq.SUB), ctx.socket(zmq.XSUB)
     try:
@@ -208,6 +209,67 @@ def test_subscriptions_that_match_no_topic_are_ignored_counted_and_logged_once(c
         raw.close(0)
         pub.close()
         ctx.term()
+
+
+HOSTILE_SUBSCRIBER = """
+import os, sys, time, zmq
+ctx = zmq.Context()
+s = ctx.socket(zmq.SUB)
+s.setsockopt(zmq.SNDHWM, 0)
+s.connect(sys.argv[1])
+for i in range(int(sys.argv[2])):
+    s.setsockopt(zmq.SUBSCRIBE, os.urandom(210))
+    if i % 500 == 0:
+        time.sleep(0.01)
+time.sleep(60)
+"""
+
+
+def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> None:
+    """A subscriber process sending 20,000 distinct 210-byte subscriptions (libzmq's table
+    would grow by about 100 MB): its connection is ended each time the table passes the cap,
+    the process's memory stays within a few MB, an honest subscriber keeps its poses, and
+    the status counters say what happened."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_control import _rss_mb
+
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
+    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    honest = ctx.socket(zmq.SUB)
+    honest.setsockopt(zmq.LINGER, 0)
+    honest.setsockopt(zmq.SUBSCRIBE, b"pose")
+    honest.connect(endpoint)
+    _until(lambda: pub.wanted("pose"), "the honest subscriber")
+    before = _rss_mb()
+    hostile = subprocess.Popen([sys.executable, "-c", HOSTILE_SUBSCRIBER, endpoint, "20000"])
+    got, peak, seq = 0, 0, 0
+    try:
+        t_end = time.monotonic() + 8.0
+        while time.monotonic() < t_end:
+            seq += 1
+            pub.send_frames([b"pose", str(seq).encode()])
+            while honest.poll(0):
+                honest.recv_multipart()
+                got += 1
+            peak = max(peak, pub.guard.distinct_bytes)
+            time.sleep(1 / 30)
+        info = pub.info()
+        grown = _rss_mb() - before
+    finally:
+        hostile.kill()
+        hostile.wait()
+        honest.close(0)
+        pub.close()
+        ctx.term()
+    assert info.evicted_subscribers >= 1
+    assert peak <= pub.guard.max_bytes + 1000 * 211  # one read's worth past the cap at most
+    assert grown < 20.0, f"the publisher grew by {grown:.1f} MB"
+    assert got > 0.9 * seq, (got, seq)
 
 
 def test_bind_error_is_an_oserror_naming_the_endpoint() -> None:
