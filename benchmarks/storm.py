@@ -224,6 +224,16 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
             "subscribers_left_open": len(subs)}
 
 
+def final_status(rep: str) -> dict[str, Any]:
+    """The daemon's ``status`` reply's status ({} when it does not answer within 5 s)."""
+    ctx = zmq.Context()
+    try:
+        _, reply = Requester(ctx, rep).send([b'{"cmd": "status"}'])
+    finally:
+        ctx.destroy(linger=0)
+    return (reply or {}).get("status") or {}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--requests", type=int, default=10_000)
@@ -268,6 +278,7 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(2.0)
             t1 = time.time()
             exit_status = proc.poll()
+            pose_port = final_status(rep).get("pose_port")
         finally:
             mem.stop_event.set()
             if proc.poll() is None:
@@ -290,6 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         "pose_rate_hz": {"mean": round(float(rx.size / (t1 - t0)), 2), "min_1s": int(windows.min())},
         "rss_mb": {"start": round(rss0, 1), "max": round(peak, 1), "growth": round(peak - rss0, 1)},
         **result,
+        "status_pose_port_after": pose_port,
         "log_tail": tail if exit_status is not None else None,
     }
     print(json.dumps(out))

@@ -348,6 +348,7 @@ class PosePortInfo(BaseModel):
 
     model_config = ConfigDict(extra="ignore", json_schema_serialization_defaults_required=True)
 
+    subscribers: int = Field(0, ge=0, description="subscriber connections open")
     subscriptions: int = Field(
         0, ge=0, description="distinct subscription prefixes held by the subscribers (libzmq's table)"
     )

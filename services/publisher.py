@@ -126,13 +126,24 @@ class RateLimiter:
 #: a SUB's metadata); a frame announced larger closes that subscriber's connection before
 #: anything is allocated.
 PUB_MAX_FRAME_BYTES = 512
+#: Subscription messages queued from one subscriber before libzmq reads them into its
+#: table (``ZMQ_RCVHWM`` on the XPUB): bounds how far a flood overshoots the table's cap
+#: between two reads. Further ones wait in the connection (TCP flow control).
+PUB_RCVHWM = 64
+#: The kernel's receive buffer per subscriber connection (``ZMQ_RCVBUF``, bytes): what a
+#: subscriber may have in flight towards the table; a subscriber sends little.
+PUB_RCVBUF_BYTES = 4096
 
 
 class Publisher:
     """Non-blocking XPUB publisher of ``[topic, json]`` messages (thread-safe)."""
 
     def __init__(
-        self, ctx: zmq.Context[Any], endpoint: str, sndhwm: int = 100, curve: CurveConfig | None = None
+        self,
+        ctx: zmq.Context[Any],
+        endpoint: str,
+        sndhwm: int = 100,
+        curve: CurveConfig | None = None,
     ) -> None:
         """Bind ``endpoint``; with ``curve`` keys, as a CURVE server (services/curve_auth.py).
         Raises OSError when the endpoint cannot be bound or the keys cannot be read."""
@@ -145,6 +156,8 @@ class Publisher:
         # last one goes (module docstring), so duplicates are counted by libzmq.
         self._sock.setsockopt(zmq.XPUB_VERBOSE, 0)
         self._sock.setsockopt(zmq.MAXMSGSIZE, PUB_MAX_FRAME_BYTES)
+        self._sock.setsockopt(zmq.RCVHWM, PUB_RCVHWM)
+        self._sock.setsockopt(zmq.RCVBUF, PUB_RCVBUF_BYTES)
         self._release_curve: Callable[[], None] = lambda: None
         try:
             self._release_curve = attach_server(ctx, self._sock, curve)
@@ -172,6 +185,10 @@ class Publisher:
             topic = bytes(msg[1:])
             if msg[:1] in (b"\x00", b"\x01"):
                 self.guard.reported(msg[0] == 1, len(topic))
+                if self.guard.over:
+                    self.guard.enforce()  # at once: each read lets libzmq fill its table more
+                    if self.guard.evicting:
+                        break  # until libzmq has dropped that connection's subscriptions
             if msg[:1] not in (b"\x00", b"\x01") or topic not in TOPIC_PREFIXES:
                 self._ignore(msg)
             elif msg[0] == 1:
@@ -211,6 +228,7 @@ class Publisher:
         """The subscribers' counters for the status."""
         with self._lock:
             return PosePortInfo(
+                subscribers=self.guard.subscribers,
                 subscriptions=self.guard.distinct,
                 subscription_bytes=self.guard.distinct_bytes,
                 ignored_subscriptions=self.ignored_subscriptions,

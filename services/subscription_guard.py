@@ -21,6 +21,12 @@ one (its ``DISCONNECTED`` event), since the reports of its prefixes come only th
 subscriber that connects again (ZeroMQ reconnects by itself) and sends the same table is
 evicted again; the others keep receiving.
 
+The number of connections is not capped here: a connection ended for its number comes back
+every reconnect interval (ZeroMQ retries by itself), and hundreds of them handshaking ten
+times a second cost the daemon more than their buffers do. Their number is reported
+(:attr:`SubscriptionGuard.subscribers`) and bounded by the process's file descriptors
+(``LimitNOFILE`` in the systemd unit).
+
 Connections are known from the socket's monitor (``ZMQ_EVENT_ACCEPTED`` gives the file
 descriptor libzmq owns). The guard ends one with ``shutdown(2)`` on a duplicate of that
 descriptor, after checking it is still a connected socket on the pose port's own port: libzmq
@@ -74,7 +80,8 @@ def bytes_received(sock: socket.socket) -> int | None:
 
 
 class SubscriptionGuard:
-    """Counts the distinct prefixes of an XPUB socket and evicts past a cap (module docstring)."""
+    """Counts the pose port's connections and distinct prefixes, and ends the connection that
+    sent the most when the prefixes pass a cap (module docstring)."""
 
     def __init__(
         self,
@@ -86,13 +93,18 @@ class SubscriptionGuard:
         self.max_distinct, self.max_bytes = int(max_distinct), int(max_bytes)
         self.distinct = 0
         self.distinct_bytes = 0
-        self.evicted = 0
+        self.evicted = 0  # connections ended for the table
         self._sock = sock
         self._monitor = sock.get_monitor_socket(_EVENTS)
         self._accepted: dict[int, float] = {}  # fd -> monotonic time accepted
+        self._closing: dict[int, float] = {}  # fd shut by the guard -> when
         self._evicting: int | None = None
-        self._evicting_since = 0.0
         self._port = _tcp_port(sock.getsockopt_string(zmq.LAST_ENDPOINT))
+
+    @property
+    def subscribers(self) -> int:
+        """Connections open on the pose port (those being ended aside)."""
+        return len(self._accepted) - len(self._closing)
 
     def reported(self, subscribe: bool, size: int) -> None:
         """Count one report of the XPUB: a prefix of ``size`` bytes got its first holder
@@ -102,20 +114,27 @@ class SubscriptionGuard:
         self.distinct_bytes = max(self.distinct_bytes + sign * int(size), 0)
 
     @property
+    def evicting(self) -> bool:
+        """Whether a connection ended for the table has not been dropped by libzmq yet."""
+        return self._evicting is not None
+
+    @property
     def over(self) -> bool:
-        """Whether the table is past one of the caps."""
+        """Whether the table is past one of its caps."""
         return self.distinct > self.max_distinct or self.distinct_bytes > self.max_bytes
 
     def enforce(self) -> None:
-        """Read the monitor's events, then evict one subscriber if over the cap."""
+        """Read the monitor's events, then end the connection that sent the most if the table
+        is over a cap."""
         self._read_events()
-        if self._evicting is not None and time.monotonic() - self._evicting_since > EVICTION_WAIT_S:
-            self._evicting = None  # its event was lost: do not wait for ever
+        now = time.monotonic()
+        for fd in [fd for fd, t in self._closing.items() if now - t > EVICTION_WAIT_S]:
+            self._forget(fd)  # its event was lost: do not wait for ever
         if not self.over or self._evicting is not None:
             return
         for fd in self._victims():
             if self._shut(fd):
-                self._evicting, self._evicting_since = fd, time.monotonic()
+                self._evicting = fd
                 self.evicted += 1
                 if self.evicted == 1 or self.evicted % 100 == 0:
                     log.warning(
@@ -125,7 +144,7 @@ class SubscriptionGuard:
                         self.evicted,
                     )
                 return
-            self._accepted.pop(fd, None)
+            self._forget(fd)
 
     def close(self) -> None:
         """Stop the monitor (before the XPUB socket is closed)."""
@@ -143,19 +162,24 @@ class SubscriptionGuard:
             except zmq.ZMQError:
                 return
             fd = int(event["value"])
-            if event["event"] == zmq.EVENT_ACCEPTED:
-                self._accepted[fd] = time.monotonic()
-            else:
-                self._accepted.pop(fd, None)
-                if fd == self._evicting:
-                    self._evicting = None
+            if event["event"] != zmq.EVENT_ACCEPTED:
+                self._forget(fd)
+                continue
+            self._accepted[fd] = time.monotonic()
+
+    def _forget(self, fd: int) -> None:
+        self._accepted.pop(fd, None)
+        self._closing.pop(fd, None)
+        if fd == self._evicting:
+            self._evicting = None
 
     def _victims(self) -> list[int]:
-        """Accepted connections, the one that sent the most first (else the newest first)."""
+        """Open connections, the one that sent the most first (else the newest first)."""
         ranked: list[tuple[int, float, int]] = []
         for fd, accepted in self._accepted.items():
-            sent = _with_dup(fd, bytes_received)
-            ranked.append((-1 if sent is None else sent, accepted, fd))
+            if fd not in self._closing:
+                sent = _with_dup(fd, bytes_received)
+                ranked.append((-1 if sent is None else sent, accepted, fd))
         return [fd for _, _, fd in sorted(ranked, reverse=True)]
 
     def _shut(self, fd: int) -> bool:
@@ -168,7 +192,10 @@ class SubscriptionGuard:
             s.shutdown(socket.SHUT_RDWR)
             return True
 
-        return bool(_with_dup(fd, shut))
+        done = bool(_with_dup(fd, shut))
+        if done:
+            self._closing[fd] = time.monotonic()
+        return done
 
 
 def _with_dup(fd: int, fn: Any) -> Any:
