@@ -17,7 +17,10 @@ Each request waits for its reply (REQ, 5 s timeout), except a frame over the con
 limit (``services.control.CONTROL_MAX_FRAME_BYTES``): the daemon drops its connection unread,
 so it gets no reply by design and is counted as ``dropped_oversize`` (1 s wait). It prints one
 JSON object: the daemon's exit status (None: still running, i.e. no crash), the pose rate per
-one-second window (the minimum over the storm), the daemon's resident memory (VmRSS) at the
+one-second window (the minimum over the storm) by the poses' stamps (what the daemon
+published; a pose is stamped with its frame's time) and by their arrival at this process's
+subscriber (what a client received: this process also runs the storm, so it competes for
+the CPU), the daemon's resident memory (VmRSS) at the
 start and its maximum, the reply latency (median, p99, maximum, per kind), the replies that
 were errors and the requests that got no reply.
 Loopback only; the number of operations and the time are bounded.
@@ -290,15 +293,23 @@ def main(argv: list[str] | None = None) -> int:
             col.stop_event.set()
             col.join(5)
         tail = log.read_text()[-1500:]
-    rx = np.array([r for r, _, _ in col.poses if t0 <= r <= t1])
-    windows = np.histogram(rx, bins=np.arange(t0, t1 + 1e-9, 1.0))[0] if rx.size else np.zeros(1)
+    def per_second(times: list[float]) -> tuple[float, int]:
+        """(mean rate, fewest in a one-second window) of the times within the storm."""
+        a = np.array([t for t in times if t0 <= t <= t1])
+        bins = np.arange(t0, t1 + 1e-9, 1.0)
+        windows = np.histogram(a, bins=bins)[0] if a.size and bins.size > 1 else np.zeros(1)
+        return round(float(a.size / (t1 - t0)), 2), int(windows.min())
+
+    published = per_second([stamp for _, stamp, _ in col.poses])
+    received = per_second([r for r, _, _ in col.poses])
     peak = max((m for _, m in mem.samples), default=rss0)
     out = {
         "benchmark": "storm",
         "machine": {"cpus": os.cpu_count(), "load_avg_1m": round(os.getloadavg()[0], 2)},
         "daemon_exit_status_during_storm": exit_status,
         "storm_seconds": round(t1 - t0, 1),
-        "pose_rate_hz": {"mean": round(float(rx.size / (t1 - t0)), 2), "min_1s": int(windows.min())},
+        "pose_rate_hz": {"mean": published[0], "min_1s": published[1]},
+        "received_rate_hz": {"mean": received[0], "min_1s": received[1]},
         "rss_mb": {"start": round(rss0, 1), "max": round(peak, 1), "growth": round(peak - rss0, 1)},
         **result,
         "status_pose_port_after": pose_port,

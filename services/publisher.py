@@ -126,24 +126,13 @@ class RateLimiter:
 #: a SUB's metadata); a frame announced larger closes that subscriber's connection before
 #: anything is allocated.
 PUB_MAX_FRAME_BYTES = 512
-#: Subscription messages queued from one subscriber before libzmq reads them into its
-#: table (``ZMQ_RCVHWM`` on the XPUB): bounds how far a flood overshoots the table's cap
-#: between two reads. Further ones wait in the connection (TCP flow control).
-PUB_RCVHWM = 64
-#: The kernel's receive buffer per subscriber connection (``ZMQ_RCVBUF``, bytes): what a
-#: subscriber may have in flight towards the table; a subscriber sends little.
-PUB_RCVBUF_BYTES = 4096
 
 
 class Publisher:
     """Non-blocking XPUB publisher of ``[topic, json]`` messages (thread-safe)."""
 
     def __init__(
-        self,
-        ctx: zmq.Context[Any],
-        endpoint: str,
-        sndhwm: int = 100,
-        curve: CurveConfig | None = None,
+        self, ctx: zmq.Context[Any], endpoint: str, sndhwm: int = 100, curve: CurveConfig | None = None
     ) -> None:
         """Bind ``endpoint``; with ``curve`` keys, as a CURVE server (services/curve_auth.py).
         Raises OSError when the endpoint cannot be bound or the keys cannot be read."""
@@ -156,8 +145,6 @@ class Publisher:
         # last one goes (module docstring), so duplicates are counted by libzmq.
         self._sock.setsockopt(zmq.XPUB_VERBOSE, 0)
         self._sock.setsockopt(zmq.MAXMSGSIZE, PUB_MAX_FRAME_BYTES)
-        self._sock.setsockopt(zmq.RCVHWM, PUB_RCVHWM)
-        self._sock.setsockopt(zmq.RCVBUF, PUB_RCVBUF_BYTES)
         self._release_curve: Callable[[], None] = lambda: None
         try:
             self._release_curve = attach_server(ctx, self._sock, curve)
@@ -166,6 +153,7 @@ class Publisher:
             self._sock.close(linger=0)
             self._release_curve()
             raise OSError(f"cannot bind the PUB socket to {endpoint}: {exc}") from exc
+        self.last_endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.guard = SubscriptionGuard(self._sock)
         self.sent: Counter[str] = Counter()
         self.dropped = 0
@@ -185,10 +173,6 @@ class Publisher:
             topic = bytes(msg[1:])
             if msg[:1] in (b"\x00", b"\x01"):
                 self.guard.reported(msg[0] == 1, len(topic))
-                if self.guard.over:
-                    self.guard.enforce()  # at once: each read lets libzmq fill its table more
-                    if self.guard.evicting:
-                        break  # until libzmq has dropped that connection's subscriptions
             if msg[:1] not in (b"\x00", b"\x01") or topic not in TOPIC_PREFIXES:
                 self._ignore(msg)
             elif msg[0] == 1:
@@ -227,6 +211,8 @@ class Publisher:
     def info(self) -> PosePortInfo:
         """The subscribers' counters for the status."""
         with self._lock:
+            if not self._closed:
+                self.guard.enforce()  # the monitor's events: the connections open now
             return PosePortInfo(
                 subscribers=self.guard.subscribers,
                 subscriptions=self.guard.distinct,

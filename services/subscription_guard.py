@@ -11,15 +11,22 @@ libzmq's table, :attr:`SubscriptionGuard.distinct`, and their summed length,
 bytes plus a pointer table (at most 256 pointers) per prefix.
 
 The cap: when ``distinct`` exceeds :data:`MAX_DISTINCT_SUBSCRIPTIONS` or ``distinct_bytes``
-exceeds :data:`MAX_SUBSCRIPTION_TABLE_BYTES`, the guard ends one subscriber's connection. libzmq then drops that connection's subscriptions (and reports the
-prefixes nobody else holds, which brings ``distinct`` down). The connection ended is the one
-that has sent the most bytes (``tcpi_bytes_received`` of Linux's ``TCP_INFO``): a subscriber
-sends nothing but subscriptions after its handshake, so the connection that filled the table
-is the one that sent the most. Where the kernel cannot say (IPC, another OS) it is the one
-accepted last. One eviction at a time: the next waits until libzmq has closed the previous
-one (its ``DISCONNECTED`` event), since the reports of its prefixes come only then. A
-subscriber that connects again (ZeroMQ reconnects by itself) and sends the same table is
-evicted again; the others keep receiving.
+exceeds :data:`MAX_SUBSCRIPTION_TABLE_BYTES`, the guard ends a subscriber's connection; libzmq
+then drops that connection's subscriptions and reports the prefixes nobody else holds, which
+brings the counts down. The connection ended is the one that has sent the most bytes
+(``tcpi_bytes_received`` of Linux's ``TCP_INFO``): a subscriber sends nothing but
+subscriptions after its handshake, so the connection that filled the table is the one that
+sent the most (where the kernel cannot say, IPC or another OS, the one accepted last).
+
+Two regimes, because an ended subscriber comes back (ZeroMQ reconnects by itself, every
+100 ms by default) and sends its table again:
+
+- **Over a cap**: one connection at a time, the next once libzmq has dropped the previous one
+  (its ``DISCONNECTED`` event). Ending at most one connection per drop keeps the reconnection
+  churn as slow as the subscribers that fill the table arrive.
+- **Flooded**, past :data:`HARD_CAP_FACTOR` times a cap (a burst of subscribers): at once, as
+  many connections, from the top, as sent the table's excess over :data:`EVICT_TO` of its
+  caps. This bounds the memory whatever the burst; the churn it costs is the flood's.
 
 The number of connections is not capped here: a connection ended for its number comes back
 every reconnect interval (ZeroMQ retries by itself), and hundreds of them handshaking ten
@@ -38,6 +45,7 @@ Not thread-safe: called by :class:`services.publisher.Publisher` with its lock h
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import socket
@@ -56,6 +64,13 @@ log = logging.getLogger("lino_loc.service.publisher")
 MAX_DISTINCT_SUBSCRIPTIONS = 1024
 #: Summed length of the distinct prefixes held before a subscriber is evicted, bytes.
 MAX_SUBSCRIPTION_TABLE_BYTES = 64 * 1024
+#: Past this many times a cap the table is flooded: connections are ended in a batch, not
+#: one at a time.
+HARD_CAP_FACTOR = 4
+#: A batch of evictions brings the table down to this share of its caps.
+EVICT_TO = 0.25
+#: Most connections ended in one round (one ranking of the connections by bytes received).
+MAX_EVICTIONS_PER_ROUND = 64
 #: Longest wait for libzmq to close an evicted connection before the next eviction, s.
 EVICTION_WAIT_S = 1.0
 #: Offset of ``tcpi_bytes_received`` (u64) in Linux's ``struct tcp_info`` (since 4.1):
@@ -65,18 +80,35 @@ _TCP_INFO_LEN = _TCPI_BYTES_RECEIVED + 8
 _EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED
 
 
-def bytes_received(sock: socket.socket) -> int | None:
-    """Bytes the kernel received on a TCP connection (``TCP_INFO``), None where unknown."""
-    tcp_info = getattr(socket, "TCP_INFO", None)
-    if tcp_info is None or sock.family not in (socket.AF_INET, socket.AF_INET6):
-        return None
+def _libc_getsockopt() -> Any:
+    """libc's ``getsockopt(2)`` (ctypes), None where it is not available."""
     try:
-        raw = sock.getsockopt(socket.IPPROTO_TCP, tcp_info, _TCP_INFO_LEN)
-    except OSError:
+        fn = ctypes.CDLL(None, use_errno=True).getsockopt
+    except (OSError, AttributeError):
         return None
-    if len(raw) < _TCP_INFO_LEN:
+    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_void_p,
+                   ctypes.POINTER(ctypes.c_uint32)]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+_GETSOCKOPT = _libc_getsockopt()
+_TCP_INFO = getattr(socket, "TCP_INFO", None)
+
+
+def bytes_received(fd: int) -> int | None:
+    """Bytes the kernel received on the TCP connection of descriptor ``fd`` (``TCP_INFO``,
+    read with one ``getsockopt(2)`` on the descriptor itself); None where unknown (not TCP,
+    not Linux)."""
+    if _GETSOCKOPT is None or _TCP_INFO is None:
         return None
-    return int(struct.unpack_from("=Q", raw, _TCPI_BYTES_RECEIVED)[0])
+    buf = ctypes.create_string_buffer(_TCP_INFO_LEN)
+    size = ctypes.c_uint32(_TCP_INFO_LEN)
+    if _GETSOCKOPT(fd, socket.IPPROTO_TCP, _TCP_INFO, buf, ctypes.byref(size)) != 0:
+        return None
+    if size.value < _TCP_INFO_LEN:
+        return None
+    return int(struct.unpack_from("=Q", buf.raw, _TCPI_BYTES_RECEIVED)[0])
 
 
 class SubscriptionGuard:
@@ -98,7 +130,8 @@ class SubscriptionGuard:
         self._monitor = sock.get_monitor_socket(_EVENTS)
         self._accepted: dict[int, float] = {}  # fd -> monotonic time accepted
         self._closing: dict[int, float] = {}  # fd shut by the guard -> when
-        self._evicting: int | None = None
+        self._evicting: dict[int, int] = {}  # fds ended for the table, not yet dropped -> bytes
+        self._warned = -1  # evictions at the last warning (-1: none yet)
         self._port = _tcp_port(sock.getsockopt_string(zmq.LAST_ENDPOINT))
 
     @property
@@ -116,35 +149,58 @@ class SubscriptionGuard:
     @property
     def evicting(self) -> bool:
         """Whether a connection ended for the table has not been dropped by libzmq yet."""
-        return self._evicting is not None
+        return bool(self._evicting)
 
     @property
     def over(self) -> bool:
         """Whether the table is past one of its caps."""
         return self.distinct > self.max_distinct or self.distinct_bytes > self.max_bytes
 
+    @property
+    def flooded(self) -> bool:
+        """Whether the table is past :data:`HARD_CAP_FACTOR` times one of its caps."""
+        return (
+            self.distinct > HARD_CAP_FACTOR * self.max_distinct
+            or self.distinct_bytes > HARD_CAP_FACTOR * self.max_bytes
+        )
+
     def enforce(self) -> None:
-        """Read the monitor's events, then end the connection that sent the most if the table
-        is over a cap."""
+        """Read the monitor's events; past a cap, end the connection that sent the most, one
+        at a time (the next once libzmq has dropped it); past the hard cap, end at once as
+        many, from the top, as sent the table's excess over :data:`EVICT_TO` of its caps."""
         self._read_events()
         now = time.monotonic()
         for fd in [fd for fd, t in self._closing.items() if now - t > EVICTION_WAIT_S]:
             self._forget(fd)  # its event was lost: do not wait for ever
-        if not self.over or self._evicting is not None:
+        if not self.over:
             return
-        for fd in self._victims():
-            if self._shut(fd):
-                self._evicting = fd
-                self.evicted += 1
-                if self.evicted == 1 or self.evicted % 100 == 0:
-                    log.warning(
-                        "pose port: %d distinct subscriptions, %d bytes (caps %d, %d): ended the "
-                        "subscriber that sent the most (%d evictions so far)",
-                        self.distinct, self.distinct_bytes, self.max_distinct, self.max_bytes,
-                        self.evicted,
-                    )
-                return
-            self._forget(fd)
+        flooded = self.flooded
+        if self._evicting and not flooded:
+            return
+        excess = self._excess_bytes() - sum(self._evicting.values()) if flooded else 1.0
+        for sent, fd in self._victims():
+            if excess <= 0 or len(self._evicting) >= MAX_EVICTIONS_PER_ROUND:
+                break
+            if not self._shut(fd):
+                self._forget(fd)
+                continue
+            self._evicting[fd] = max(sent, 0)
+            self.evicted += 1
+            excess -= max(sent, 1) if flooded else excess
+        if self._warned < 0 or self.evicted - self._warned >= 100:
+            self._warned = self.evicted
+            log.warning(
+                "pose port: %d distinct subscriptions, %d bytes (caps %d, %d): ending the "
+                "subscribers that sent the most (%d evictions so far)",
+                self.distinct, self.distinct_bytes, self.max_distinct, self.max_bytes, self.evicted,
+            )
+
+    def _excess_bytes(self) -> float:
+        """Bytes of the table over :data:`EVICT_TO` of its caps (by its length, or by its count
+        at the mean prefix length)."""
+        by_bytes = self.distinct_bytes - self.max_bytes * EVICT_TO
+        by_count = (self.distinct - self.max_distinct * EVICT_TO) * self.distinct_bytes / max(self.distinct, 1)
+        return max(by_bytes, by_count, 1.0)
 
     def close(self) -> None:
         """Stop the monitor (before the XPUB socket is closed)."""
@@ -170,17 +226,17 @@ class SubscriptionGuard:
     def _forget(self, fd: int) -> None:
         self._accepted.pop(fd, None)
         self._closing.pop(fd, None)
-        if fd == self._evicting:
-            self._evicting = None
+        self._evicting.pop(fd, None)
 
-    def _victims(self) -> list[int]:
-        """Open connections, the one that sent the most first (else the newest first)."""
+    def _victims(self) -> list[tuple[int, int]]:
+        """(bytes received or -1 where unknown, fd) of the open connections, the one that sent
+        the most first (among unknowns, the newest first)."""
         ranked: list[tuple[int, float, int]] = []
         for fd, accepted in self._accepted.items():
             if fd not in self._closing:
-                sent = _with_dup(fd, bytes_received)
+                sent = bytes_received(fd)
                 ranked.append((-1 if sent is None else sent, accepted, fd))
-        return [fd for _, _, fd in sorted(ranked, reverse=True)]
+        return [(sent, fd) for sent, _, fd in sorted(ranked, reverse=True)]
 
     def _shut(self, fd: int) -> bool:
         """``shutdown(2)`` the connection ``fd`` if it is one of the pose port's; True if done."""

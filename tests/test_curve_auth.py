@@ -159,7 +159,7 @@ class _Daemonish:
 
         self.ctx: zmq.Context[Any] = zmq.Context()
         self.pub = Publisher(self.ctx, "tcp://127.0.0.1:*", 10, curve)
-        self.pub_ep = self.pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+        self.pub_ep = self.pub.last_endpoint
         self.control = ControlServer(self.ctx, "tcp://127.0.0.1:*", lambda req: PingReply(stamp=1.0), curve)
         self.rep_ep = self.control._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
         self.control.start()

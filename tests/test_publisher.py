@@ -62,7 +62,7 @@ def test_a_subscriber_that_never_reads_does_not_block_or_starve_others() -> None
     (almost) everything."""
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=400)
-    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    endpoint = pub.last_endpoint
     stalled = ctx.socket(zmq.SUB)
     reader = ctx.socket(zmq.SUB)
     try:
@@ -125,7 +125,7 @@ def test_duplicate_subscriptions_are_counted_right() -> None:
     after duplicates, leaves nobody; two clients on one topic: wanted until both left."""
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
-    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    endpoint = pub.last_endpoint
     a, b = ctx.socket(zmq.SUB), ctx.socket(zmq.SUB)
     try:
         a.connect(endpoint)
@@ -176,7 +176,7 @@ def test_subscriptions_that_match_no_topic_are_ignored_counted_and_logged_once(c
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
     pub.guard.max_distinct = pub.guard.max_bytes = 10**9  # the view alone (the cap: below)
-    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    endpoint = pub.last_endpoint
     hostile, raw = ctx.socket(zmq.SUB), ctx.socket(zmq.XSUB)
     try:
         hostile.setsockopt(zmq.SNDHWM, 0)
@@ -239,7 +239,7 @@ def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> 
 
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
-    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    endpoint = pub.last_endpoint
     honest = ctx.socket(zmq.SUB)
     honest.setsockopt(zmq.LINGER, 0)
     honest.setsockopt(zmq.SUBSCRIBE, b"pose")
@@ -353,7 +353,7 @@ def test_a_200_mb_frame_from_a_subscriber_is_dropped_and_the_others_keep_their_s
     assert PUB_MAX_FRAME_BYTES <= 64 * 1024
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
-    endpoint = pub._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    endpoint = pub.last_endpoint
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
     sub.setsockopt(zmq.SUBSCRIBE, b"pose")
