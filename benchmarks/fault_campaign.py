@@ -46,9 +46,12 @@ truth); if it is not within ``--settle`` s, the row starts anyway and says so. P
   after the fault's end), ``reported`` (``reported_after_s`` is not None) and ``recovered``
   (``recover_s`` is not None), or what of these is missing.
 
-A line split in two pieces (``odometry_split``) is no fault to the receiver: a serial line
-arrives in pieces whenever a read catches it half written, and the driver joins them; nothing
-is lost, so nothing is reported and its verdict asks only that it is ridden through.
+Two rows have nothing to report, and their verdict asks only that they are ridden through and
+recovered: a line split in two pieces (``odometry_split``) is no fault to the receiver (a serial
+line arrives in pieces whenever a read catches it half written, and the driver joins them;
+nothing is lost), and the lights switched back to the map's own (``lights -> tube``) is the end
+of the previous row's change (the filter watches for every view becoming less familiar at once;
+these become more familiar).
 
 Usage::
 
@@ -106,7 +109,7 @@ FAULT_ROWS: list[tuple[str, dict[str, Any]]] = [
     ("camera_malformed 50 %", {"fault": "camera_malformed", "fraction": 0.5}),
 ]
 #: Faults that lose nothing and so have nothing to report (module docstring).
-NOTHING_TO_REPORT = ("odometry_split",)
+NOTHING_TO_REPORT = ("odometry_split", "lights -> tube")
 #: Run after the lights, just before the daemon's kill -9 and restart: the head adapter gives the
 #: servo up after 3 reboots in 60 s and retries GIVEN_UP_RETRY_S later (its row waits for that).
 LAST_FAULT_ROW = ("head_hardware_error persistent", {"fault": "head_hardware_error", "persistent": True})
