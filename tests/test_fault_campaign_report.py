@@ -64,6 +64,9 @@ def test_the_verdict() -> None:
     assert fc.verdict("odometry_split", True, True, False, True) == (
         "ridden through, nothing to report, recovered"
     )
+    assert fc.verdict("lights -> tube", True, True, False, True) == (
+        "ridden through, nothing to report, recovered"
+    )
     assert fc.verdict("x", False, False, True, False) == (
         "NOT ridden through (daemon dead, no pose after), reported, NOT recovered"
     )
