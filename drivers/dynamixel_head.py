@@ -11,9 +11,11 @@ Position Limit at start) and the clamping is reported in the returned :class:`He
 and counted in the health.
 
 Faults never raise into the caller:
-- a timeout or a corrupt status packet is retried (``retries`` times); if it persists, each
-  servo is read alone to name the silent one, the state comes back ``stale`` and the health
-  is DEGRADED until a clean read;
+- a timeout or a corrupt status packet is retried (``retries`` times; a retry that succeeds
+  loses nothing and is only counted); if it persists, each servo is read alone to name the
+  silent one, the state comes back ``stale`` and the health is DEGRADED, naming the servo,
+  until ``READ_FAILURE_HOLD_S`` of clean reads (so that a bus that fails now and then shows in
+  the status, not only in the counters);
 - a servo reporting a hardware error is rebooted (logged and counted as ``reboots``), then its
   profile velocity, goal and torque are restored; the health stays DEGRADED, naming the error
   and the reboot, for ``INCIDENT_HOLD_S`` after it (so that a servo that recovered at once still
@@ -91,6 +93,9 @@ RECONNECT_BACKOFF_MIN = 0.1
 #: A servo given up (``max_reboots`` reboots within a minute) gets a new round of reboots this
 #: long after, s; its torque stays off in between.
 GIVEN_UP_RETRY_S = 60.0
+#: A state read that failed after its retries keeps the health DEGRADED, naming it, for this
+#: long after it, s (twice the daemon's status period: at least one status shows it).
+READ_FAILURE_HOLD_S = 2.0
 #: A hardware error (the servo rebooted), a servo found without torque or a goal written again
 #: keeps the health DEGRADED, naming it, for this long after it, s (then OK, if every read since
 #: was clean); longer than the daemon's status period, so that at least one status shows it.
@@ -177,6 +182,7 @@ class DynamixelHead:
         self._reboot_times: dict[int, deque[float]] = {i: deque() for i in self._ids}
         self._given_up: dict[int, float] = {}  # servo id -> when it was given up (monotonic)
         self._last_incident = -math.inf  # monotonic time of the last incident (INCIDENT_HOLD_S)
+        self._last_read_failure = -math.inf  # ... of the last failed read (READ_FAILURE_HOLD_S)
         self._closed = False
 
     # ---------------------------------------------------------------------------------------
@@ -542,11 +548,17 @@ class DynamixelHead:
             stale=len(blocks) < 2,
         )
         self._state = state
+        now = time.monotonic()
         if problems:
+            self._last_read_failure = now
             self._health.error("head: " + "; ".join(problems), HealthState.DEGRADED)
         elif self._given_up:
             self._health.set_state(HealthState.FAILED)
-        elif not any(errs.values()) and time.monotonic() - self._last_incident >= INCIDENT_HOLD_S:
+        elif (
+            not any(errs.values())
+            and now - self._last_incident >= INCIDENT_HOLD_S
+            and now - self._last_read_failure >= READ_FAILURE_HOLD_S
+        ):
             self._health.set_state(HealthState.OK)
         return state
 
