@@ -11,14 +11,21 @@ Position Limit at start) and the clamping is reported in the returned :class:`He
 and counted in the health.
 
 Faults never raise into the caller:
-- a timeout or a corrupt status packet is retried (``retries`` times); if it persists, each
-  servo is read alone to name the silent one, the state comes back ``stale`` and the health
-  is DEGRADED until a clean read;
+- a timeout or a corrupt status packet is retried (``retries`` times; a retry that succeeds
+  loses nothing and is only counted); if it persists, each servo is read alone to name the
+  silent one, the state comes back ``stale`` and the health is DEGRADED, naming the servo,
+  until ``READ_FAILURE_HOLD_S`` of clean reads (so that a bus that fails now and then shows in
+  the status, not only in the counters);
 - a servo reporting a hardware error is rebooted (logged and counted as ``reboots``), then its
-  profile velocity, goal and torque are restored; more than ``max_reboots`` reboots within a
+  profile velocity, goal and torque are restored; the health stays DEGRADED, naming the error
+  and the reboot, for ``INCIDENT_HOLD_S`` after it (so that a servo that recovered at once still
+  shows in the status, not only in the counters); more than ``max_reboots`` reboots within a
   minute leave it off and the health FAILED, until ``GIVEN_UP_RETRY_S`` later a new round of
   reboots is tried (an overheated or overloaded servo has cooled down by then, and only a
   reboot clears its error status);
+- a servo found without torque (a brown-out) is set up again and a goal it missed is written
+  again (counted as ``torque_restores`` / ``goal_rewrites``), with the health DEGRADED, naming
+  it, for ``INCIDENT_HOLD_S`` as well;
 - a port that cannot be opened or vanishes leaves the health FAILED and is reopened on later
   calls, after a pause that doubles per failed attempt from ``RECONNECT_BACKOFF_MIN`` up to
   ``reconnect_backoff_max`` and falls back to the minimum after a successful set-up
@@ -41,6 +48,7 @@ Usage::
 from __future__ import annotations
 
 import logging
+import math
 import termios
 import threading
 import time
@@ -85,6 +93,13 @@ RECONNECT_BACKOFF_MIN = 0.1
 #: A servo given up (``max_reboots`` reboots within a minute) gets a new round of reboots this
 #: long after, s; its torque stays off in between.
 GIVEN_UP_RETRY_S = 60.0
+#: A state read that failed after its retries keeps the health DEGRADED, naming it, for this
+#: long after it, s (twice the daemon's status period: at least one status shows it).
+READ_FAILURE_HOLD_S = 2.0
+#: A hardware error (the servo rebooted), a servo found without torque or a goal written again
+#: keeps the health DEGRADED, naming it, for this long after it, s (then OK, if every read since
+#: was clean); longer than the daemon's status period, so that at least one status shows it.
+INCIDENT_HOLD_S = 5.0
 
 _BLOCK_START = XAddr.TORQUE_ENABLE  # 64
 _BLOCK_LEN = XAddr.PRESENT_POSITION + 4 - _BLOCK_START  # 72 bytes: 64..135
@@ -166,6 +181,8 @@ class DynamixelHead:
         self._last_read_mono = -1e9
         self._reboot_times: dict[int, deque[float]] = {i: deque() for i in self._ids}
         self._given_up: dict[int, float] = {}  # servo id -> when it was given up (monotonic)
+        self._last_incident = -math.inf  # monotonic time of the last incident (INCIDENT_HOLD_S)
+        self._last_read_failure = -math.inf  # ... of the last failed read (READ_FAILURE_HOLD_S)
         self._closed = False
 
     # ---------------------------------------------------------------------------------------
@@ -262,6 +279,7 @@ class DynamixelHead:
 
     def _connect(self) -> bool:
         c = self.config
+        t_start = time.monotonic()
         self._disconnect()
         # The SDK derives every packet timeout from this module-level value (milliseconds).
         _sdk_port_handler.LATENCY_TIMER = c.latency_timer_ms
@@ -288,7 +306,8 @@ class DynamixelHead:
             log.warning("head: cannot set up %s: %s (retry in %.1f s)", c.port, exc, delay)
             return False
         self._backoff.reset()
-        self._health.set_state(HealthState.OK)
+        if not self._given_up and self._last_incident < t_start:
+            self._health.set_state(HealthState.OK)  # else: as the set-up's incident left it
         log.info("head: connected on %s (ids %s)", c.port, self._ids)
         return True
 
@@ -360,6 +379,7 @@ class DynamixelHead:
             self._health.error(msg, HealthState.FAILED)
             return
         log.warning("head: %s; rebooting it", what)
+        self._last_incident = now
         times.append(now)
         self._health.count("reboots")
         result, _ = self._ph.reboot(self._port, dxl_id)
@@ -381,8 +401,13 @@ class DynamixelHead:
         except _Fault as exc:
             self._health.error(f"{what}; rebooted it, restore failed: {exc}")
             return
-        msg = f"{what}; rebooted it and restored torque"
+        self._incident(f"{what}; rebooted it and restored torque")
+
+    def _incident(self, msg: str) -> None:
+        """A fault the adapter repaired: logged, the health DEGRADED naming it for
+        ``INCIDENT_HOLD_S``."""
         log.warning("head: %s", msg)
+        self._last_incident = time.monotonic()
         self._health.error(msg, HealthState.DEGRADED)
 
     # ---------------------------------------------------------------------------------------
@@ -480,28 +505,28 @@ class DynamixelHead:
             off = addr - _BLOCK_START
             return int.from_bytes(blocks[dxl_id][off : off + size], "little")
 
-        recovered = False
         for dxl_id, _ in list(blocks.items()):
             hw = field(dxl_id, XAddr.HARDWARE_ERROR_STATUS, 1)
             if hw:
                 try:
                     self._hardware_error(dxl_id, hw)  # rebooted, or still given up
-                    recovered = dxl_id not in self._given_up
                 except _Fault as exc:
                     problems.append(str(exc))
                 continue
             self._given_up.pop(dxl_id, None)
             try:
+                name = f"servo {dxl_id} ({self._names[dxl_id]})"
                 if not field(dxl_id, XAddr.TORQUE_ENABLE, 1):
                     self._health.count("torque_restores")
-                    log.warning("head: servo %d lost torque; restoring", dxl_id)
                     self._setup_servo(dxl_id, initial=False)
+                    self._incident(f"{name} had lost torque; set it up again")
                 elif (
                     dxl_id in self._goal
                     and to_signed32(field(dxl_id, XAddr.GOAL_POSITION, 4)) != self._goal[dxl_id]
                 ):
                     self._health.count("goal_rewrites")
                     self._write(dxl_id, XAddr.GOAL_POSITION, 4, self._goal[dxl_id])
+                    self._incident(f"{name} held another goal than the one sent; wrote it again")
             except _Fault as exc:
                 problems.append(str(exc))
 
@@ -523,11 +548,17 @@ class DynamixelHead:
             stale=len(blocks) < 2,
         )
         self._state = state
+        now = time.monotonic()
         if problems:
+            self._last_read_failure = now
             self._health.error("head: " + "; ".join(problems), HealthState.DEGRADED)
         elif self._given_up:
             self._health.set_state(HealthState.FAILED)
-        elif not recovered and not any(errs.values()):
+        elif (
+            not any(errs.values())
+            and now - self._last_incident >= INCIDENT_HOLD_S
+            and now - self._last_read_failure >= READ_FAILURE_HOLD_S
+        ):
             self._health.set_state(HealthState.OK)
         return state
 

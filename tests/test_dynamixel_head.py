@@ -12,6 +12,7 @@ import dynamixel_sdk
 import dynamixel_sdk.port_handler as sdk_port_handler
 import pytest
 
+import drivers.dynamixel_head as dh
 from drivers.dynamixel_head import DynamixelHead, HeadConfig
 from drivers.dynamixel_protocol import (
     HardwareError,
@@ -103,8 +104,9 @@ def test_commands_are_clamped_to_limits(emu: DynamixelBusEmulator, head: Dynamix
 
 
 def test_no_reply_retries_then_degraded_not_exception(
-    emu: DynamixelBusEmulator, head: DynamixelHead
+    emu: DynamixelBusEmulator, head: DynamixelHead, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(dh, "READ_FAILURE_HOLD_S", 0.3)
     good = head.read()
     emu.set_no_reply(2)
     t0 = time.monotonic()
@@ -118,7 +120,16 @@ def test_no_reply_retries_then_degraded_not_exception(
     assert health.counters["timeouts"] >= 3  # first try + 2 retries (+ the single read)
     assert health.counters["retries"] == 2
     emu.set_no_reply(2, False)
+    t_back = time.monotonic()
     assert not head.read().stale
+    # the failed read is reported for READ_FAILURE_HOLD_S of clean reads
+    while time.monotonic() - t_back < 0.2:
+        assert not head.read().stale
+        assert head.health().state is HealthState.DEGRADED
+        assert "servo 2 (tilt)" in (head.health().last_error or "")
+        time.sleep(0.02)
+    time.sleep(0.15)
+    head.read()
     assert head.health().state is HealthState.OK
 
 
@@ -152,12 +163,13 @@ def test_crc_error_is_retried(emu: DynamixelBusEmulator, head: DynamixelHead) ->
     assert not state.stale
     h = head.health()
     assert h.counters["crc_errors"] == 1 and h.counters["retries"] == 1
-    assert h.state is HealthState.OK
+    assert h.state is HealthState.OK  # a retry that succeeds loses nothing: only counted
 
 
 def test_hardware_error_reboots_and_restores(
-    emu: DynamixelBusEmulator, head: DynamixelHead
+    emu: DynamixelBusEmulator, head: DynamixelHead, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(dh, "INCIDENT_HOLD_S", 0.3)
     head.command(0.2, 0.1)
     head.wait_until_still(1.0, poll=0.005)
     emu.set_hardware_error(2, HardwareError.OVERHEATING)
@@ -175,8 +187,65 @@ def test_hardware_error_reboots_and_restores(
     assert emu.register(2, XAddr.PROFILE_VELOCITY) == rad_s_to_profile_velocity(6.0)
     after = head.read()
     assert after.tilt_error == 0 and not after.stale
+    # the servo recovered at once, but the health says so for INCIDENT_HOLD_S
+    assert head.health().state is HealthState.DEGRADED
+    assert "overheating" in (head.health().last_error or "")
+    time.sleep(0.35)
+    head.read()
     assert head.health().state is HealthState.OK
     assert head.health().counters["reboots"] == 1
+
+
+def test_a_one_off_hardware_error_shows_in_the_health_for_the_hold_time(
+    emu: DynamixelBusEmulator, head: DynamixelHead, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(dh, "INCIDENT_HOLD_S", 0.4)
+    emu.set_hardware_error(1, HardwareError.OVERLOAD)
+    head.read()  # rebooted and restored: the hold starts
+    t0 = time.monotonic()
+    seen: list[HealthState] = []
+    while time.monotonic() - t0 < 0.3:  # within the hold: every clean read still DEGRADED
+        assert not head.read().stale
+        h = head.health()
+        seen.append(h.state)
+        assert "servo 1 (pan)" in (h.last_error or "") and "overload" in (h.last_error or "")
+        time.sleep(0.02)
+    assert seen and set(seen) == {HealthState.DEGRADED}
+    time.sleep(max(0.0, 0.45 - (time.monotonic() - t0)))
+    head.read()
+    assert head.health().state is HealthState.OK
+    assert emu.instructions["REBOOT"] == 1 and head.health().counters["hardware_errors"] == 1
+
+
+def test_a_hardware_error_at_open_is_not_reported_ok(
+    emu: DynamixelBusEmulator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(dh, "INCIDENT_HOLD_S", 0.3)
+    emu.set_hardware_error(2, HardwareError.OVERHEATING)
+    head = DynamixelHead(make_config(emu.port))
+    try:
+        assert head.open()
+        h = head.health()
+        assert h.state is HealthState.DEGRADED and "servo 2 (tilt)" in (h.last_error or "")
+        assert emu.instructions["REBOOT"] == 1 and emu.register(2, XAddr.TORQUE_ENABLE) == 1
+        time.sleep(0.35)
+        head.read()
+        assert head.health().state is HealthState.OK
+    finally:
+        head.close()
+
+
+def test_a_servo_given_up_at_open_is_reported_failed(emu: DynamixelBusEmulator) -> None:
+    emu.set_hardware_error(1, HardwareError.OVERLOAD)
+    head = DynamixelHead(make_config(emu.port, auto_reboot=False))
+    try:
+        head.open()
+        h = head.health()
+        assert h.state is HealthState.FAILED and "servo 1 (pan)" in (h.last_error or "")
+        head.read()
+        assert head.health().state is HealthState.FAILED
+    finally:
+        head.close()
 
 
 def test_persistent_hardware_error_gives_up(emu: DynamixelBusEmulator) -> None:
@@ -197,8 +266,9 @@ def test_persistent_hardware_error_gives_up(emu: DynamixelBusEmulator) -> None:
 
 
 def test_lost_torque_and_missed_goal_are_restored(
-    emu: DynamixelBusEmulator, head: DynamixelHead
+    emu: DynamixelBusEmulator, head: DynamixelHead, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(dh, "INCIDENT_HOLD_S", 0.3)
     head.command(0.3, 0.0)
     time.sleep(0.01)  # let the emulator take the sync write first
     with emu._lock:  # a brown-out on servo 1, a sync write missed by servo 2
@@ -209,6 +279,12 @@ def test_lost_torque_and_missed_goal_are_restored(
     assert h.counters["torque_restores"] == 1 and h.counters["goal_rewrites"] == 1
     assert emu.register(1, XAddr.TORQUE_ENABLE) == 1
     assert emu.register(2, XAddr.GOAL_POSITION) == rad_to_tick(0.0)
+    head.read()  # clean, but both repairs are reported for INCIDENT_HOLD_S
+    h = head.health()
+    assert h.state is HealthState.DEGRADED and "servo 2 (tilt)" in (h.last_error or "")
+    time.sleep(0.35)
+    head.read()
+    assert head.health().state is HealthState.OK
 
 
 def test_missing_port_and_reconnect(tmp_path: os.PathLike[str]) -> None:
@@ -248,9 +324,8 @@ def test_config_validation() -> None:
 def test_a_given_up_servo_gets_a_new_round_of_reboots_after_the_retry_time(
     emu: DynamixelBusEmulator, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import drivers.dynamixel_head as dh
-
     monkeypatch.setattr(dh, "GIVEN_UP_RETRY_S", 0.3)
+    monkeypatch.setattr(dh, "INCIDENT_HOLD_S", 0.2)
     head = DynamixelHead(make_config(emu.port, max_reboots=1))
     assert head.open(), head.health()
     try:
@@ -264,6 +339,10 @@ def test_a_given_up_servo_gets_a_new_round_of_reboots_after_the_retry_time(
         time.sleep(0.35)
         head.read()  # cooled down: rebooted, the error cleared, torque restored
         assert emu.instructions["REBOOT"] == 2 and emu.register(1, XAddr.TORQUE_ENABLE) == 1
+        head.read()
+        h = head.health()  # failed -> degraded (the reboot, for INCIDENT_HOLD_S) -> ok
+        assert h.state is HealthState.DEGRADED and "rebooted it" in (h.last_error or "")
+        time.sleep(0.25)
         head.read()
         assert head.health().state is HealthState.OK
     finally:

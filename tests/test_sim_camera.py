@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import zmq
 
+import drivers.sim.camera as sim_camera
 from drivers.interfaces import CameraIntrinsics, HealthState, StereoCamera
 from drivers.sim.camera import SimStereoCamera
 from drivers.sim.frame_transport import FRAME_TOPIC, FrameError, decode_frame, encode_frame
@@ -170,6 +171,31 @@ def test_malformed_frames_are_counted_and_skipped(pub) -> None:
         sock.send_multipart([FRAME_TOPIC, b"\xff\xfe"])
         assert cam.read(timeout=0.3) is None
         assert cam.health().counters["malformed"] == 4
+
+
+def test_a_malformed_message_shows_in_the_health_for_the_hold_time(pub, monkeypatch) -> None:
+    monkeypatch.setattr(sim_camera, "MALFORMED_HOLD_S", 0.4)
+    sock, endpoint = pub
+    with SimStereoCamera(endpoint, compute_disparity=False) as cam:
+        seq = _until_connected(sock, cam)
+        assert cam.health().state is HealthState.OK
+        sock.send_multipart([FRAME_TOPIC, b"{broken json"])
+        t0 = time.monotonic()
+        states = []
+        while time.monotonic() - t0 < 0.25:  # good frames, but within the hold
+            sock.send_multipart(_parts(seq))
+            seq += 1
+            f = cam.read(timeout=0.5)
+            assert f is not None
+            h = cam.health()
+            states.append(h.state)
+            assert "malformed" in (h.last_error or "")
+            time.sleep(0.02)
+        assert states and set(states) == {HealthState.DEGRADED}
+        time.sleep(0.2)
+        sock.send_multipart(_parts(seq))
+        assert cam.read(timeout=0.5) is not None
+        assert cam.health().state is HealthState.OK and cam.health().counters["malformed"] == 1
 
 
 def test_disparity_of_a_known_shift(pub) -> None:

@@ -7,7 +7,9 @@ format in :mod:`drivers.sim.frame_transport`). It is the counterpart of the OAK-
 - ``read(timeout)`` returns the NEWEST frame available: it drains the socket's queue and
   counts the older frames it skipped as ``dropped`` (a localizer wants the latest view, not
   a backlog). Frames lost before they reached this reader (a sequence gap) are counted as
-  ``lost``; a malformed message is counted as ``malformed`` and skipped;
+  ``lost``; a malformed message is counted as ``malformed`` and skipped, and leaves the health
+  DEGRADED, naming it, until ``MALFORMED_HOLD_S`` after it (so that a few bad messages among
+  good frames show in the status, not only in the counters);
 - the disparity map is computed on the host with :func:`lino_loc.disparity.compute_disparity`
   (OpenCV StereoBM, sparse), standing in for the OAK-D's on-device stereo; switch it off
   with ``compute_disparity=False``;
@@ -29,6 +31,7 @@ Usage::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import replace
@@ -41,6 +44,10 @@ from lino_loc.disparity import StereoConfig, compute_disparity
 from lino_loc.errors import LinoLocError
 
 log = logging.getLogger("lino_loc.drivers.sim_camera")
+
+#: A malformed message keeps the health DEGRADED, naming it, for this long after it, s (twice
+#: the daemon's status period: at least one status shows it), even while good frames arrive.
+MALFORMED_HOLD_S = 2.0
 
 
 class SimStereoCamera:
@@ -73,6 +80,7 @@ class SimStereoCamera:
         self._health.error(f"sim camera: not opened ({endpoint})", HealthState.FAILED)
         self._opened_mono: float | None = None
         self._last_frame_mono: float | None = None
+        self._last_malformed = -math.inf  # monotonic time of the last malformed message
         self._last_seq: int | None = None
         self._bad_endpoint = False
 
@@ -169,7 +177,8 @@ class SimStereoCamera:
                 return None
             self._last_frame_mono = time.monotonic()
         self._health.count("frames")
-        if self._health.state is not HealthState.OK:
+        held = time.monotonic() - self._last_malformed < MALFORMED_HOLD_S
+        if self._health.state is not HealthState.OK and not held:
             log.info("sim camera: frames arriving from %s", self.endpoint)
             self._health.set_state(HealthState.OK)
         if self.compute_disparity:
@@ -190,6 +199,7 @@ class SimStereoCamera:
                 frame = decode_frame(parts)
             except FrameError as exc:
                 self._health.count("malformed")
+                self._last_malformed = time.monotonic()
                 self._health.error(f"sim camera: malformed frame skipped: {exc}")
                 log.warning("sim camera: malformed frame skipped: %s", exc)
                 continue
