@@ -170,6 +170,10 @@ class MemorySampler(threading.Thread):
 
 def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
     rng = np.random.default_rng(args.seed)
+    mix = np.array([m if not args.only or k in args.only else 0.0
+                    for k, m in zip(KINDS, MIX, strict=True)])
+    mix = mix / mix.sum()
+    timeline: list[tuple[float, str]] = []
     ctx = zmq.Context()
     req = Requester(ctx, rep)
     subs: list[zmq.Socket[Any]] = []
@@ -184,7 +188,8 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
         for _ in range(args.requests):
             if time.time() > deadline:
                 break
-            kind = KINDS[int(rng.choice(len(KINDS), p=MIX))]
+            kind = KINDS[int(rng.choice(len(KINDS), p=mix))]
+            timeline.append((time.time(), kind))
             if kind == "subscribe":
                 t0 = time.perf_counter()
                 subscribe_storm(ctx, pub, rng, subs)
@@ -223,8 +228,25 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
     replied = [x for k in KINDS if k != "subscribe" for x in lat[k]]
     return {"sent": sent, "latency": {k: stats(v) for k, v in lat.items()},
             "reply_latency_all": stats(replied), "error_replies": errors, "no_reply": no_reply,
-            "dropped_oversize": dropped_oversize,
+            "dropped_oversize": dropped_oversize, "timeline": timeline,
             "subscribers_left_open": len(subs)}
+
+
+def worst_window(stamps: list[float], timeline: list[tuple[float, str]], t0: float,
+                 t1: float) -> dict[str, Any] | None:
+    """The one-second window of the storm with the fewest poses published: its start (s
+    after the storm's), its poses and the operations sent in it and in the second before."""
+    bins = np.arange(t0, t1 + 1e-9, 1.0)
+    if bins.size < 2:
+        return None
+    counts = np.histogram(np.asarray(stamps), bins=bins)[0]
+    i = int(np.argmin(counts))
+    lo, hi = bins[i], bins[i + 1]
+    ops: dict[str, int] = {}
+    for t, kind in timeline:
+        if lo - 1.0 <= t < hi:
+            ops[kind] = ops.get(kind, 0) + 1
+    return {"start_s": round(float(lo - t0), 1), "poses": int(counts[i]), "ops_then_and_before": ops}
 
 
 def final_status(rep: str) -> dict[str, Any]:
@@ -244,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-seconds", type=float, default=900.0, help="the storm stops by then")
     p.add_argument("--warmup", type=float, default=10.0, help="seconds after the first pose")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--settle", type=float, default=2.0, help="seconds observed after the storm")
+    p.add_argument("--only", type=lambda v: v.split(","), default=None,
+                   help=f"comma-separated kinds to send, of {', '.join(KINDS)} (default: all, mixed)")
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--fps", type=float, default=15.0)
@@ -278,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
             mem.start()
             t0 = time.time()
             result = storm(args, rep, pub)
-            time.sleep(2.0)
+            time.sleep(args.settle)
             t1 = time.time()
             exit_status = proc.poll()
             pose_port = final_status(rep).get("pose_port")
@@ -302,6 +327,7 @@ def main(argv: list[str] | None = None) -> int:
 
     published = per_second([stamp for _, stamp, _ in col.poses])
     received = per_second([r for r, _, _ in col.poses])
+    worst = worst_window([stamp for _, stamp, _ in col.poses], result.pop("timeline"), t0, t1)
     peak = max((m for _, m in mem.samples), default=rss0)
     out = {
         "benchmark": "storm",
@@ -310,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
         "storm_seconds": round(t1 - t0, 1),
         "pose_rate_hz": {"mean": published[0], "min_1s": published[1]},
         "received_rate_hz": {"mean": received[0], "min_1s": received[1]},
+        "worst_second": worst,
         "rss_mb": {"start": round(rss0, 1), "max": round(peak, 1), "growth": round(peak - rss0, 1)},
         **result,
         "status_pose_port_after": pose_port,

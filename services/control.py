@@ -244,7 +244,7 @@ class ControlServer(threading.Thread):
 
 #: Longest a ``set_pose`` / ``global_localization`` reply waits for the loop to apply it, s:
 #: the loop applies queued commands between two updates, and an update may take longer.
-ACK_WAIT_S = 0.05
+ACK_WAIT_S = 0.02
 _QUEUED = "queued, applied before the next update: belief "
 
 

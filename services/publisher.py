@@ -165,10 +165,12 @@ class Publisher:
     def _drain_subscriptions(self) -> None:
         """Read up to :data:`MAX_SUBSCRIPTION_MESSAGES` (un)subscription reports (called with
         the lock held): a prefix of a topic is added or removed, anything else is ignored."""
+        backlog = True
         for _ in range(MAX_SUBSCRIPTION_MESSAGES):
             try:
                 msg = self._sock.recv(zmq.NOBLOCK)
             except zmq.ZMQError:  # zmq.Again included: nothing more to read
+                backlog = False
                 break
             topic = bytes(msg[1:])
             if msg[:1] in (b"\x00", b"\x01"):
@@ -179,7 +181,7 @@ class Publisher:
                 self.subscriptions.add(topic)
             else:
                 self.subscriptions.discard(topic)
-        self.guard.enforce()
+        self.guard.enforce(backlog)
 
     def _ignore(self, msg: bytes) -> None:
         """Count a message that is not the (un)subscription of a topic prefix; log the first."""

@@ -18,15 +18,17 @@ brings the counts down. The connection ended is the one that has sent the most b
 subscriptions after its handshake, so the connection that filled the table is the one that
 sent the most (where the kernel cannot say, IPC or another OS, the one accepted last).
 
-Two regimes, because an ended subscriber comes back (ZeroMQ reconnects by itself, every
-100 ms by default) and sends its table again:
-
-- **Over a cap**: one connection at a time, the next once libzmq has dropped the previous one
-  (its ``DISCONNECTED`` event). Ending at most one connection per drop keeps the reconnection
-  churn as slow as the subscribers that fill the table arrive.
-- **Flooded**, past :data:`HARD_CAP_FACTOR` times a cap (a burst of subscribers): at once, as
-  many connections, from the top, as sent the table's excess over :data:`EVICT_TO` of its
-  caps. This bounds the memory whatever the burst; the churn it costs is the flood's.
+One connection at a time, the next once libzmq has dropped the previous one (its
+``DISCONNECTED`` event), and at most :data:`MAX_EVICTIONS_PER_S` a second: an ended subscriber
+comes back (ZeroMQ reconnects by itself) and sends its table again, so ending subscribers
+as fast as they fill the table keeps it at its cap, and ending them faster only adds churn.
+This bounds the table against subscribers that arrive over time. A burst of hundreds at
+once fills it faster than that; and libzmq drops an ended connection's subscriptions by
+walking its whole table, inside the loop's calls on the socket, so evicting from a large
+table stalls the loop for as long as the table is large. Past
+:data:`EVICTION_MAX_FACTOR` times a cap, or while subscription reports are waiting unread,
+the guard therefore leaves the table to libzmq (logged once), as without the guard: what a
+burst costs is then libzmq's memory, not the loop's time.
 
 The number of connections is not capped here: a connection ended for its number comes back
 every reconnect interval (ZeroMQ retries by itself), and hundreds of them handshaking ten
@@ -64,13 +66,15 @@ log = logging.getLogger("lino_loc.service.publisher")
 MAX_DISTINCT_SUBSCRIPTIONS = 1024
 #: Summed length of the distinct prefixes held before a subscriber is evicted, bytes.
 MAX_SUBSCRIPTION_TABLE_BYTES = 64 * 1024
-#: Past this many times a cap the table is flooded: connections are ended in a batch, not
-#: one at a time.
-HARD_CAP_FACTOR = 4
-#: A batch of evictions brings the table down to this share of its caps.
-EVICT_TO = 0.25
-#: Most connections ended in one round (one ranking of the connections by bytes received).
-MAX_EVICTIONS_PER_ROUND = 64
+#: Most evictions per second. An ended subscriber comes back (ZeroMQ reconnects every
+#: 100 ms by default) and sends its subscriptions again, which libzmq adds to the table
+#: again inside the loop's calls on the socket: ending faster than subscribers arrive
+#: turns a burst of them into a churn that costs more than their table.
+MAX_EVICTIONS_PER_S = 20
+#: Past this many times a cap, or while reports wait unread, the guard does not evict:
+#: libzmq removes an ended connection's subscriptions by walking its whole table, in the
+#: loop's calls on the socket, so ending subscribers of a table that large stalls the loop.
+EVICTION_MAX_FACTOR = 4
 #: Longest wait for libzmq to close an evicted connection before the next eviction, s.
 EVICTION_WAIT_S = 1.0
 #: Offset of ``tcpi_bytes_received`` (u64) in Linux's ``struct tcp_info`` (since 4.1):
@@ -132,6 +136,9 @@ class SubscriptionGuard:
         self._closing: dict[int, float] = {}  # fd shut by the guard -> when
         self._evicting: dict[int, int] = {}  # fds ended for the table, not yet dropped -> bytes
         self._warned = -1  # evictions at the last warning (-1: none yet)
+        self._tokens = float(MAX_EVICTIONS_PER_S)  # token bucket of evictions
+        self._beyond_logged = False
+        self._refilled = time.monotonic()
         self._port = _tcp_port(sock.getsockopt_string(zmq.LAST_ENDPOINT))
 
     @property
@@ -152,55 +159,59 @@ class SubscriptionGuard:
         return bool(self._evicting)
 
     @property
+    def beyond_eviction(self) -> bool:
+        """Whether the table is past :data:`EVICTION_MAX_FACTOR` times one of its caps."""
+        return (
+            self.distinct > EVICTION_MAX_FACTOR * self.max_distinct
+            or self.distinct_bytes > EVICTION_MAX_FACTOR * self.max_bytes
+        )
+
+    @property
     def over(self) -> bool:
         """Whether the table is past one of its caps."""
         return self.distinct > self.max_distinct or self.distinct_bytes > self.max_bytes
 
-    @property
-    def flooded(self) -> bool:
-        """Whether the table is past :data:`HARD_CAP_FACTOR` times one of its caps."""
-        return (
-            self.distinct > HARD_CAP_FACTOR * self.max_distinct
-            or self.distinct_bytes > HARD_CAP_FACTOR * self.max_bytes
-        )
-
-    def enforce(self) -> None:
-        """Read the monitor's events; past a cap, end the connection that sent the most, one
-        at a time (the next once libzmq has dropped it); past the hard cap, end at once as
-        many, from the top, as sent the table's excess over :data:`EVICT_TO` of its caps."""
+    def enforce(self, backlog: bool = False) -> None:
+        """Read the monitor's events; over a cap, end the connection that sent the most, one
+        at a time (the next once libzmq has dropped it) and at most
+        :data:`MAX_EVICTIONS_PER_S` a second; never while the reports are behind
+        (``backlog``: more are waiting to be read) or the table is past
+        :data:`EVICTION_MAX_FACTOR` times a cap, when an eviction would cost more than the
+        table (module docstring)."""
         self._read_events()
         now = time.monotonic()
         for fd in [fd for fd, t in self._closing.items() if now - t > EVICTION_WAIT_S]:
             self._forget(fd)  # its event was lost: do not wait for ever
-        if not self.over:
+        if not self.over or self._evicting:
             return
-        flooded = self.flooded
-        if self._evicting and not flooded:
+        if backlog or self.beyond_eviction:
+            if not self._beyond_logged:
+                self._beyond_logged = True
+                log.warning(
+                    "pose port: a burst of subscriptions (%d distinct, %d bytes so far, more "
+                    "waiting: %s): too many to end subscribers cheaply; left to libzmq",
+                    self.distinct, self.distinct_bytes, backlog,
+                )
             return
-        excess = self._excess_bytes() - sum(self._evicting.values()) if flooded else 1.0
+        self._tokens = min(self._tokens + (now - self._refilled) * MAX_EVICTIONS_PER_S,
+                           float(MAX_EVICTIONS_PER_S))
+        self._refilled = now
+        if self._tokens < 1.0:
+            return
         for sent, fd in self._victims():
-            if excess <= 0 or len(self._evicting) >= MAX_EVICTIONS_PER_ROUND:
+            if self._shut(fd):
+                self._evicting[fd] = max(sent, 0)
+                self._tokens -= 1.0
+                self.evicted += 1
                 break
-            if not self._shut(fd):
-                self._forget(fd)
-                continue
-            self._evicting[fd] = max(sent, 0)
-            self.evicted += 1
-            excess -= max(sent, 1) if flooded else excess
-        if self._warned < 0 or self.evicted - self._warned >= 100:
+            self._forget(fd)
+        if self._evicting and (self._warned < 0 or self.evicted - self._warned >= 100):
             self._warned = self.evicted
             log.warning(
-                "pose port: %d distinct subscriptions, %d bytes (caps %d, %d): ending the "
-                "subscribers that sent the most (%d evictions so far)",
+                "pose port: %d distinct subscriptions, %d bytes (caps %d, %d): ended the "
+                "subscriber that sent the most (%d evictions so far)",
                 self.distinct, self.distinct_bytes, self.max_distinct, self.max_bytes, self.evicted,
             )
-
-    def _excess_bytes(self) -> float:
-        """Bytes of the table over :data:`EVICT_TO` of its caps (by its length, or by its count
-        at the mean prefix length)."""
-        by_bytes = self.distinct_bytes - self.max_bytes * EVICT_TO
-        by_count = (self.distinct - self.max_distinct * EVICT_TO) * self.distinct_bytes / max(self.distinct, 1)
-        return max(by_bytes, by_count, 1.0)
 
     def close(self) -> None:
         """Stop the monitor (before the XPUB socket is closed)."""
