@@ -219,16 +219,17 @@ s.setsockopt(zmq.SNDHWM, 0)
 s.connect(sys.argv[1])
 for i in range(int(sys.argv[2])):
     s.setsockopt(zmq.SUBSCRIBE, os.urandom(210))
-    if i % 500 == 0:
-        time.sleep(0.01)
+    if i % 50 == 0:
+        time.sleep(0.05)
 time.sleep(60)
 """
 
 
 def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> None:
-    """A subscriber process sending 20,000 distinct 210-byte subscriptions (libzmq's table
-    would grow by about 100 MB): its connection is ended each time the table passes the cap,
-    the process's memory stays within a few MB, an honest subscriber keeps its poses, and
+    """A subscriber process sending 600 distinct 210-byte subscriptions (twice the table's
+    cap), 1000 a second: its connection is ended each time the table passes the cap (it
+    reconnects and sends them all again, and is ended again), the table stays within four
+    caps, the process's memory within a few MB, an honest subscriber keeps its poses, and
     the status counters say what happened."""
     import subprocess
     import sys
@@ -236,6 +237,8 @@ def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> 
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from test_control import _rss_mb
+
+    from services.subscription_guard import EVICTION_MAX_FACTOR
 
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
@@ -246,7 +249,7 @@ def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> 
     honest.connect(endpoint)
     _until(lambda: pub.wanted("pose"), "the honest subscriber")
     before = _rss_mb()
-    hostile = subprocess.Popen([sys.executable, "-c", HOSTILE_SUBSCRIBER, endpoint, "20000"])
+    hostile = subprocess.Popen([sys.executable, "-c", HOSTILE_SUBSCRIBER, endpoint, "600"])
     got, peak, seq = 0, 0, 0
     try:
         t_end = time.monotonic() + 8.0
@@ -267,10 +270,45 @@ def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> 
         pub.close()
         ctx.term()
     assert info.evicted_subscribers >= 1, info
-    # past the cap by what libzmq reads until it has dropped the connection (tens of ms)
-    assert peak <= pub.guard.max_bytes + 2000 * 211, peak
-    assert grown < 25.0, f"the publisher grew by {grown:.1f} MB (about 100 MB without the cap)"
+    assert peak <= EVICTION_MAX_FACTOR * pub.guard.max_bytes, peak
+    assert grown < 10.0, f"the publisher grew by {grown:.1f} MB"
     assert got > 0.9 * seq, (got, seq)
+
+
+def test_the_guard_evicts_over_a_cap_but_not_past_four_caps_nor_while_reports_wait() -> None:
+    """The guard's regimes on a real connection, its counts set by hand: under the caps
+    nothing happens; past four times a cap, or with reports waiting (backlog), nothing is
+    ended (logged once); just over a cap, the connection is ended (and reconnects)."""
+    from services.subscription_guard import EVICTION_MAX_FACTOR
+
+    ctx = zmq.Context()
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"pose")
+    sub.connect(pub.last_endpoint)
+    g = pub.guard
+    try:
+        _until(lambda: pub.info().subscribers == 1, "the subscriber accepted")
+        with pub._lock:
+            g.reported(True, g.max_bytes)  # at the cap, not over
+            g.enforce()
+            assert g.evicted == 0 and not g.over
+            g.reported(True, (EVICTION_MAX_FACTOR - 1) * g.max_bytes + 1)  # past four caps
+            g.enforce()
+            assert g.over and g.beyond_eviction and g.evicted == 0
+            g.reported(False, (EVICTION_MAX_FACTOR - 1) * g.max_bytes + 1)
+            g.reported(True, 1)  # just over one cap, but reports are waiting
+            g.enforce(backlog=True)
+            assert g.evicted == 0
+            g.enforce()
+            assert g.evicted == 1 and g.evicting
+        _until(lambda: pub.info() is not None and not g.evicting, "libzmq dropped the connection")
+        _until(lambda: pub.info().subscribers == 1, "the subscriber back")
+    finally:
+        sub.close(0)
+        pub.close()
+        ctx.term()
 
 
 def test_bind_error_is_an_oserror_naming_the_endpoint() -> None:
