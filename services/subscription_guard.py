@@ -75,6 +75,8 @@ MAX_EVICTIONS_PER_S = 20
 #: libzmq removes an ended connection's subscriptions by walking its whole table, in the
 #: loop's calls on the socket, so ending subscribers of a table that large stalls the loop.
 EVICTION_MAX_FACTOR = 4
+#: Shortest time between two ``malloc_trim`` calls after evictions, s.
+TRIM_PERIOD_S = 1.0
 #: Longest wait for libzmq to close an evicted connection before the next eviction, s.
 EVICTION_WAIT_S = 1.0
 #: Offset of ``tcpi_bytes_received`` (u64) in Linux's ``struct tcp_info`` (since 4.1):
@@ -97,6 +99,20 @@ def _libc_getsockopt() -> Any:
 
 
 _GETSOCKOPT = _libc_getsockopt()
+
+
+def _libc_malloc_trim() -> Any:
+    """glibc's ``malloc_trim(3)`` (ctypes), None where it is not available (musl, macOS)."""
+    try:
+        fn = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_size_t]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+_MALLOC_TRIM = _libc_malloc_trim()
 _TCP_INFO = getattr(socket, "TCP_INFO", None)
 
 
@@ -138,6 +154,7 @@ class SubscriptionGuard:
         self._warned = -1  # evictions at the last warning (-1: none yet)
         self._tokens = float(MAX_EVICTIONS_PER_S)  # token bucket of evictions
         self._beyond_logged = False
+        self._trimmed = 0.0
         self._refilled = time.monotonic()
         self._port = _tcp_port(sock.getsockopt_string(zmq.LAST_ENDPOINT))
 
@@ -237,7 +254,18 @@ class SubscriptionGuard:
     def _forget(self, fd: int) -> None:
         self._accepted.pop(fd, None)
         self._closing.pop(fd, None)
-        self._evicting.pop(fd, None)
+        if self._evicting.pop(fd, None) is not None:
+            self._trim()
+
+    def _trim(self) -> None:
+        """Give the pages libzmq freed with an evicted table back to the system
+        (``malloc_trim(3)``), at most once per :data:`TRIM_PERIOD_S`: the table's nodes are
+        small allocations that otherwise stay in the heap, free but resident."""
+        now = time.monotonic()
+        if _MALLOC_TRIM is None or now - self._trimmed < TRIM_PERIOD_S:
+            return
+        self._trimmed = now
+        _MALLOC_TRIM(0)
 
     def _victims(self) -> list[tuple[int, int]]:
         """(bytes received or -1 where unknown, fd) of the open connections, the one that sent
