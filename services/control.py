@@ -64,6 +64,7 @@ from services.messages import (
     parse_request,
 )
 from services.persistence import SavedState
+from services.subscription_guard import HANDSHAKE_FAILED
 
 if TYPE_CHECKING:
     from lino_loc.localizer import Localizer
@@ -206,10 +207,13 @@ class ControlServer(threading.Thread):
             raise OSError(f"cannot bind the control socket to {endpoint}: {exc}") from exc
         self.requests = 0
         self.errors = 0
+        self.refused_handshakes = 0  # no CURVE keys, a key not authorized, not ZeroMQ
+        self._monitor = self._sock.get_monitor_socket(HANDSHAKE_FAILED)
 
     def run(self) -> None:
         try:
             while not self._stop_event.is_set():
+                self._count_refused()
                 try:
                     if not self._sock.poll(100):
                         continue
@@ -230,16 +234,34 @@ class ControlServer(threading.Thread):
                 except zmq.ZMQError as exc:
                     log.warning("control reply not sent: %s", exc)
         finally:
-            self._sock.close(linger=0)
-            self._release_curve()
+            self._close()
+
+    def _count_refused(self) -> None:
+        """Count the handshakes the monitor reports refused."""
+        while True:
+            try:
+                self._monitor.recv_multipart(zmq.NOBLOCK)
+            except zmq.ZMQError:
+                return
+            self.refused_handshakes += 1
+
+    def _close(self) -> None:
+        if self._monitor.closed:
+            return
+        try:
+            self._sock.disable_monitor()
+        except zmq.ZMQError:
+            pass
+        self._monitor.close(linger=0)
+        self._sock.close(linger=0)
+        self._release_curve()
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop_event.set()
         if self.is_alive():
             self.join(timeout)
         if not self.is_alive():  # also when never started: the socket and the ZAP handler go
-            self._sock.close(linger=0)
-            self._release_curve()
+            self._close()
 
 
 #: Longest a ``set_pose`` / ``global_localization`` reply waits for the loop to apply it, s:

@@ -266,7 +266,8 @@ class Daemon:
         self.status = StatusReporter(
             self.mailbox, self.workers, map_info(amap, cfg.map.path), simulated=cfg.simulated,
             sources=StatusSources(self._state, lambda: self.localizer.appearance_changes,
-                                  self.active.info, self._persistence_info, self._pose_port_info),
+                                  self.active.info, self._persistence_info, self._pose_port_info,
+                                  lambda: self.control.refused_handshakes if self.control else 0),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
 

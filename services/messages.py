@@ -361,6 +361,10 @@ class PosePortInfo(BaseModel):
         "passed its cap (the one that sent the most each time)"
     )
     dropped_sends: int = Field(0, ge=0, description="messages ZeroMQ refused to queue since start")
+    refused_handshakes: int = Field(
+        0, ge=0, description="connections refused at the handshake since start (no CURVE keys, "
+        "a key not authorized, not ZeroMQ)"
+    )
 
 
 class ActiveVisionInfo(BaseModel):
@@ -412,6 +416,10 @@ class StatusMessage(_Published):
     active_vision: ActiveVisionInfo | None = None
     persistence: PersistenceInfo | None = None
     pose_port: PosePortInfo | None = None
+    control_refused_handshakes: int = Field(
+        0, ge=0, description="control connections refused at the handshake since start (no "
+        "CURVE keys, a key not authorized, not ZeroMQ)"
+    )
     simulated: bool = False
     version: str | None = Field(None, description="software version of the daemon")
 

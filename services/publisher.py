@@ -222,6 +222,7 @@ class Publisher:
                 ignored_subscriptions=self.ignored_subscriptions,
                 evicted_subscribers=self.guard.evicted,
                 dropped_sends=self.dropped,
+                refused_handshakes=self.guard.refused_handshakes,
             )
 
     def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:

@@ -126,7 +126,9 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
             "persistence": {"initial_belief": "the saved pose (2.41, 1.07, 1.57), 3 s old, to be "
                             "confirmed by the views", "saves": 366, "save_error": None},
             "pose_port": {"subscribers": 3, "subscriptions": 2, "subscription_bytes": 10,
-                          "ignored_subscriptions": 0, "evicted_subscribers": 0, "dropped_sends": 0},
+                          "ignored_subscriptions": 0, "evicted_subscribers": 0, "dropped_sends": 0,
+                          "refused_handshakes": 0},
+            "control_refused_handshakes": 0,
             "simulated": False, "version": "0.1.0",
         },
     ],

@@ -101,6 +101,7 @@ class StatusSources:
     active_vision: Callable[[], ActiveVisionInfo | None]
     persistence: Callable[[], PersistenceInfo | None] = lambda: None
     pose_port: Callable[[], PosePortInfo | None] = lambda: None
+    control_refused_handshakes: Callable[[], int] = lambda: 0
 
 
 class StatusReporter:
@@ -247,6 +248,7 @@ class StatusReporter:
             active_vision=av,
             persistence=self.sources.persistence(),
             pose_port=self.sources.pose_port(),
+            control_refused_handshakes=self.sources.control_refused_handshakes(),
             simulated=self.simulated,
             version=__version__,
         )

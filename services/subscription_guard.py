@@ -37,7 +37,8 @@ times a second cost the daemon more than their buffers do. Their number is repor
 (``LimitNOFILE`` in the systemd unit).
 
 Connections are known from the socket's monitor (``ZMQ_EVENT_ACCEPTED`` gives the file
-descriptor libzmq owns). The guard ends one with ``shutdown(2)`` on a duplicate of that
+descriptor libzmq owns); the same monitor counts the handshakes refused
+(:data:`HANDSHAKE_FAILED`: a client without the CURVE keys or with a key not authorized). The guard ends one with ``shutdown(2)`` on a duplicate of that
 descriptor, after checking it is still a connected socket on the pose port's own port: libzmq
 sees the end of the stream and cleans up as for any peer that left; the guard never closes
 libzmq's descriptor.
@@ -83,7 +84,13 @@ EVICTION_WAIT_S = 1.0
 #: 8 one-byte fields, 24 u32, then pacing_rate, max_pacing_rate, bytes_acked (u64).
 _TCPI_BYTES_RECEIVED = 8 + 24 * 4 + 3 * 8
 _TCP_INFO_LEN = _TCPI_BYTES_RECEIVED + 8
-_EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED
+#: Monitor events of a handshake refused: the wrong security mechanism (a client without
+#: CURVE keys), a key the authenticator does not know, or a malformed greeting.
+HANDSHAKE_FAILED = (
+    zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+    | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+)
+_EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED | HANDSHAKE_FAILED
 
 
 def _libc_getsockopt() -> Any:
@@ -146,6 +153,7 @@ class SubscriptionGuard:
         self.distinct = 0
         self.distinct_bytes = 0
         self.evicted = 0  # connections ended for the table
+        self.refused_handshakes = 0  # connections whose handshake failed (CURVE keys, ZMTP)
         self._sock = sock
         self._monitor = sock.get_monitor_socket(_EVENTS)
         self._accepted: dict[int, float] = {}  # fd -> monotonic time accepted
@@ -245,6 +253,9 @@ class SubscriptionGuard:
                 event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK))
             except zmq.ZMQError:
                 return
+            if event["event"] & HANDSHAKE_FAILED:
+                self.refused_handshakes += 1  # its value is an error number, not a descriptor
+                continue
             fd = int(event["value"])
             if event["event"] != zmq.EVENT_ACCEPTED:
                 self._forget(fd)

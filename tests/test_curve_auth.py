@@ -225,6 +225,11 @@ def test_only_an_authorized_client_gets_poses_and_replies(keys: dict[str, Path])
         # and the authorized client still works after the refused ones
         assert _gets_pose(ctx, d.pub_ep, good, 5.0)
         assert _gets_reply(ctx, d.rep_ep, good, 5.0)
+        # the refused handshakes are counted (for the status), on both sockets
+        deadline = time.monotonic() + 5.0
+        while d.pub.info().refused_handshakes < 3 or d.control.refused_handshakes < 3:
+            assert time.monotonic() < deadline, (d.pub.info(), d.control.refused_handshakes)
+            time.sleep(0.05)
     finally:
         ctx.destroy(0)
         d.close()

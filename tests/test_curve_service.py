@@ -8,6 +8,7 @@ know, gets no pose and no reply; the authorized client gets both. No traffic lea
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -19,7 +20,7 @@ import pytest
 import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_curve_auth import _gets_pose, _gets_reply  # noqa: E402
+from test_curve_auth import _client, _gets_pose, _gets_reply  # noqa: E402
 from test_daemon_integration import MAP_CACHE, ROOT, _env, _free_port, config_text, stop  # noqa: E402
 
 from services.cli import main as cli_main  # noqa: E402
@@ -61,10 +62,23 @@ def test_a_curve_daemon_serves_only_its_authorized_client(tmp_path: Path) -> Non
             assert not _gets_reply(ctx, rep, who, 3.0), f"reply without the keys ({who})"
         assert _gets_pose(ctx, pub, good, 5.0)
         assert "CURVE" in log.read_text()  # the banner says so
+        status = _status(ctx, rep, good)  # each refused client was tried on both sockets
+        assert status["pose_port"]["refused_handshakes"] >= 2, status["pose_port"]
+        assert status["control_refused_handshakes"] >= 2, status
     finally:
         ctx.destroy(0)
         code = stop(daemon, signal.SIGTERM, 30)
     assert code == 0, log.read_text()[-3000:]
+
+
+def _status(ctx: zmq.Context[Any], endpoint: str, keys: tuple[Path, Path]) -> dict[str, Any]:
+    s = _client(ctx, zmq.REQ, endpoint, keys)
+    try:
+        s.send(b'{"cmd": "status"}')
+        assert s.poll(5000), "no status reply"
+        return json.loads(s.recv())["status"]
+    finally:
+        s.close(0)
 
 
 @pytest.mark.parametrize("endpoint", ["tcp://0.0.0.0:5599", "tcp://*:5599", "tcp://eth0:5599"])
