@@ -28,6 +28,8 @@ Loopback only; the number of operations and the time are bounded.
 Usage::
 
     python benchmarks/storm.py --requests 10000
+    python benchmarks/storm.py --requests 10000 --repeat 3       # and a summary line
+    python benchmarks/storm.py --requests 560 --only subscribe   # a burst of subscribers
 """
 
 from __future__ import annotations
@@ -277,7 +279,41 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--map-cache", default="~/.cache/lino-loc/maps")
     p.add_argument("--virtual-headings", type=int, default=5)
     p.add_argument("--start-timeout", type=float, default=900.0)
+    p.add_argument("--repeat", type=int, default=1,
+                   help="run the storm this many times (a fresh daemon each); then a summary line")
     args = p.parse_args(argv)
+    runs = []
+    for _ in range(max(args.repeat, 1)):
+        runs.append(one_storm(args))
+        print(json.dumps(runs[-1]), flush=True)
+    if len(runs) > 1:
+        print(json.dumps(summary(runs)))
+    return 0
+
+
+def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Medians and worst cases over repeated storms."""
+
+    def spread(values: list[float]) -> dict[str, float]:
+        return {"median": round(float(np.median(values)), 2), "min": round(min(values), 2),
+                "max": round(max(values), 2)}
+
+    return {
+        "benchmark": "storm-summary",
+        "runs": len(runs),
+        "crashes": sum(r["daemon_exit_status_during_storm"] is not None for r in runs),
+        "no_reply": sum(sum(r["no_reply"].values()) for r in runs),
+        "pose_rate_mean_hz": spread([r["pose_rate_hz"]["mean"] for r in runs]),
+        "pose_rate_min_1s": spread([r["pose_rate_hz"]["min_1s"] for r in runs]),
+        "rss_growth_mb": spread([r["rss_mb"]["growth"] for r in runs]),
+        "reply_p99_ms": spread([r["reply_latency_all"]["p99_ms"] or 0.0 for r in runs]),
+        "reply_max_ms": spread([r["reply_latency_all"]["max_ms"] or 0.0 for r in runs]),
+        "load_avg_1m": [r["machine"]["load_avg_1m"] for r in runs],
+    }
+
+
+def one_storm(args: argparse.Namespace) -> dict[str, Any]:
+    """One storm against a fresh daemon: the JSON object described in the module docstring."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     with tempfile.TemporaryDirectory(prefix="storm-") as td:
@@ -342,8 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         "status_pose_port_after": pose_port,
         "log_tail": tail if exit_status is not None else None,
     }
-    print(json.dumps(out))
-    return 0
+    return out
 
 
 if __name__ == "__main__":
