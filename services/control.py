@@ -82,11 +82,11 @@ Handler = Callable[[Any], BaseModel]
 #: request still gets the one-line error of :func:`services.messages.parse_request` (its
 #: limit is ``MAX_REQUEST_BYTES``, 64 KiB). A frame announced larger than this closes that
 #: client's connection before anything is allocated for it (the client's request times out).
-CONTROL_MAX_FRAME_BYTES = 1024 * 1024
+CONTROL_MAX_FRAME_BYTES = 128 * 1024
 #: Requests queued per connection (``ZMQ_RCVHWM``): a REQ client has one in flight; a client
 #: that streams frames without reading the replies is held back by TCP, so what one
 #: connection can make the daemon hold is bounded by CONTROL_RCVHWM x CONTROL_MAX_FRAME_BYTES.
-CONTROL_RCVHWM = 8
+CONTROL_RCVHWM = 2
 
 
 class LoopBusy(RuntimeError):

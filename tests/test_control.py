@@ -439,3 +439,57 @@ def test_belief_problem_is_reusable_for_saved_states() -> None:
     assert "positive semi-definite" in str(belief_problem([1.0, 0.0, 0.0], np.diag([1.0, -1.0, 0.1]), b)) or (
         "variances" in str(belief_problem([1.0, 0.0, 0.0], np.diag([1.0, -1.0, 0.1]), b))
     )
+
+
+FLOODING_CLIENTS = """
+import sys, time, zmq
+ctx = zmq.Context()
+socks = []
+frame = b'{"cmd": "ping", "pad": "' + b"x" * (int(sys.argv[3]) - 30) + b'"}'
+for _ in range(int(sys.argv[2])):
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.SNDHWM, 100)
+    s.connect(sys.argv[1])
+    socks.append(s)
+    for _ in range(20):  # pipelined, never reading a reply
+        try:
+            s.send_multipart([b"", frame], zmq.NOBLOCK)
+        except zmq.Again:
+            break
+time.sleep(60)
+"""
+
+
+def test_many_clients_streaming_the_largest_frames_hold_little_memory() -> None:
+    """150 connections each pipelining 20 requests of nearly CONTROL_MAX_FRAME_BYTES, never
+    reading a reply: at most CONTROL_RCVHWM of them queue per connection (the rest wait in
+    TCP), so the server's memory grows by tens of MB at most (with 1 MiB frames and 8
+    queued it grew by about 70 MB for 200 such clients)."""
+    import subprocess
+    import sys
+
+    from services.control import CONTROL_MAX_FRAME_BYTES
+
+    ctx = zmq.Context()
+    slow = lambda req: (time.sleep(0.02), PingReply(stamp=1.0))[1]  # noqa: E731
+    server = ControlServer(ctx, "tcp://127.0.0.1:*", slow)
+    endpoint = server._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    server.start()
+    before = _rss_mb()
+    flood = subprocess.Popen(
+        [sys.executable, "-c", FLOODING_CLIENTS, endpoint, "150", str(CONTROL_MAX_FRAME_BYTES - 1024)]
+    )
+    peak = before
+    try:
+        t_end = time.monotonic() + 8.0
+        while time.monotonic() < t_end:
+            peak = max(peak, _rss_mb())
+            time.sleep(0.1)
+        answered = server.requests
+    finally:
+        flood.kill()
+        flood.wait()
+        server.stop()
+        ctx.term()
+    assert answered > 50  # it kept serving them
+    assert peak - before < 30.0, f"grew by {peak - before:.1f} MB"
