@@ -15,7 +15,7 @@ seeded generator from these kinds:
 
 Each request waits for its reply (REQ, 5 s timeout), except a frame over the control socket's
 limit (``services.control.CONTROL_MAX_FRAME_BYTES``): the daemon drops its connection unread,
-so it gets no reply by design and is counted as ``dropped_oversize`` (1 s wait). It prints one
+so it gets no reply by design and is counted as ``dropped_oversize`` (0.2 s wait). It prints one
 JSON object: the daemon's exit status (None: still running, i.e. no crash), the pose rate per
 one-second window (the minimum over the storm) by the poses' stamps (what the daemon
 published; a pose is stamped with its frame's time) and by their arrival at this process's
@@ -57,6 +57,8 @@ sys.path.insert(0, str(ROOT))
 from services.control import CONTROL_MAX_FRAME_BYTES  # noqa: E402
 
 KINDS = ("malformed", "extreme", "status", "subscribe")
+#: How long a frame over the control socket's limit waits for the reply it never gets, ms.
+OVERSIZE_WAIT_MS = 200
 #: Share of each kind in the storm (sums to 1).
 MIX = (0.45, 0.3, 0.2, 0.05)
 
@@ -203,7 +205,7 @@ def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
                 else:
                     frames = extreme(rng) if kind == "extreme" else ordinary(rng)
                 if max(len(f) for f in frames) > CONTROL_MAX_FRAME_BYTES:
-                    _, reply = req.send(frames, timeout_ms=1000)
+                    _, reply = req.send(frames, timeout_ms=OVERSIZE_WAIT_MS)
                     dropped_oversize += int(reply is None)
                     sent += 1
                     continue
