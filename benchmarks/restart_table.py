@@ -14,10 +14,11 @@ simulator's ``truth`` topic, and for each row:
    error of any ``tracking`` pose in the window, and the daemon's one-line verdict on the saved
    state (reused, or refused and why).
 
-Rows: restart after 1 s and 60 s while the robot drives (it moves while the daemon is down),
-a state stamped 30 days ago, a state of another map, and a robot that stands still
-(``lino-loc sim --no-drive``; its first belief comes from an operator's ``set_pose`` at the
-true pose). Acceptance: no ``tracking`` pose more than 0.5 m wrong.
+Rows: restart after 1 s and 60 s, a state stamped 30 days ago and a state of another map,
+each with the robot driving (it moves while the daemon is down) and standing still
+(``lino-loc sim --no-drive``, rows ``still-...``; its first belief comes from an operator's
+``set_pose`` at the true pose, then active vision turns the head). Acceptance: no
+``tracking`` pose more than 0.5 m wrong.
 
 Usage::
 
@@ -93,7 +94,12 @@ ROWS = {
     "60s": Row("60s", "kill -9 while tracking, restart after 60 s (robot driving)", 60.0),
     "30-days": Row("30-days", "saved stamp 30 days old, restart after 1 s", 1.0, edit="30-days"),
     "other-map": Row("other-map", "state saved for another map, restart after 1 s", 1.0, edit="other-map"),
-    "not-moved": Row("not-moved", "robot standing still, restart after 1 s", 1.0, drive=False),
+    "still-1s": Row("still-1s", "robot standing still, restart after 1 s", 1.0, drive=False),
+    "still-60s": Row("still-60s", "robot standing still, restart after 60 s", 60.0, drive=False),
+    "still-30-days": Row("still-30-days", "robot standing still, saved stamp 30 days old", 1.0,
+                         edit="30-days", drive=False),
+    "still-other-map": Row("still-other-map", "robot standing still, state saved for another map",
+                           1.0, edit="other-map", drive=False),
 }
 
 
