@@ -123,6 +123,12 @@ def _verdict(log: Path, offset: int) -> str:
     return "(no initial-belief line)"
 
 
+def _head_commands(s: Stream, t: float) -> int | None:
+    """The pan commands active vision sent since the restart (its last status's count)."""
+    st = s.statuses_between(t, math.inf)
+    return (st[-1].get("active_vision") or {}).get("head_commands") if st else None
+
+
 def measure(rig: Rig, s: Stream, row: Row, window: float) -> dict[str, Any]:
     """One row on a rig whose daemon is tracking (see the module docstring)."""
     if not row.drive:  # a standing robot never confirms a global belief: an operator's pose
@@ -163,6 +169,7 @@ def measure(rig: Rig, s: Stream, row: Row, window: float) -> dict[str, Any]:
         "max_tracking_error_m": max(tracking_errs) if tracking_errs else None,
         "tracking_poses": len(tracking_errs),
         "verdict": _verdict(rig.daemon_log, offset),
+        "head_commands": _head_commands(s, t_restart),
     }
     out["ok"] = out["max_tracking_error_m"] is None or out["max_tracking_error_m"] <= ACCEPT_M
     return out

@@ -12,6 +12,14 @@ It also owns the head-settle rule for the frames (:meth:`frame_at_rest`,
 :class:`lino_loc.active_vision.HeadSettle`, the rule the policy applies to its own readings)
 and counts the frames taken while the head turned or settled.
 
+A converged belief the views have not confirmed yet (state ``global``: a recalled pose, or a
+global localization that has just converged) needs new views, and a standing robot gets
+them only from the head; the policy's expected entropy sees no gain in looking at a
+concentrated belief, so when it answers "no gain" or "stay" for such a belief the head makes a
+confirmation look instead (:meth:`ActiveHead._confirmation_look`, reason ``confirm``): to
+the candidate pan of least expected entropy at least :data:`CONFIRM_LOOK_MIN_TURN` from the
+present one, under the policy's interval and settle rules.
+
 The switches are read by the loop and written by the control thread (``pause``,
 ``resume``, ``set_active_vision``), under a lock. Switching active vision off sends the head
 back to pan 0 (looking ahead) unless the head is paused.
@@ -31,17 +39,29 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from lino_loc.active_vision import ActionEvaluator, ActivePolicy, ActiveVisionConfig, HeadSettle
+from lino_loc.active_vision import (
+    ActionEvaluator,
+    ActivePolicy,
+    ActiveVisionConfig,
+    Decision,
+    HeadSettle,
+)
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
+from lino_loc.lost_detection import VIEW_THETA
 from lino_loc.pose_estimate import Estimate
 from services.messages import ActiveVisionInfo
 
 log = logging.getLogger("lino_loc.service")
 
 _METHOD = ActiveVisionConfig()
+
+#: rad: the smallest turn of a confirmation look: one independent view's worth of camera turn
+#: (``lino_loc.lost_detection.VIEW_THETA``), so each look counts fully for the lost test.
+CONFIRM_LOOK_MIN_TURN = VIEW_THETA
 
 #: The method's settings the service does not expose: the policy uses the defaults of
 #: lino_loc.active_vision.ActiveVisionConfig (22 candidate pans and 150 particles as in the
@@ -167,6 +187,9 @@ class ActiveHead:
                 pan=state.pan, moving=state.moving, now=time.time(), frame_stamp=stamp,
                 doubt=est.doubt,
             )
+            look = self._confirmation_look(d, est, state.pan)
+            if look is not None:
+                d = Decision(look, "confirm", d.belief_entropy, d.values)
         except Exception as exc:  # noqa: BLE001 - active vision must not stop localization
             log.warning("active vision failed: %s: %s", type(exc).__name__, exc)
             return None
@@ -180,6 +203,26 @@ class ActiveHead:
         log.debug("active vision: pan -> %.2f rad", d.command)
         self.head.command(float(d.command), 0.0)
         return float(d.command)
+
+    def _confirmation_look(self, d: Decision, est: Estimate, pan: float) -> float | None:
+        """The pan of a confirmation look (module docstring) or None: only for a ``global``
+        estimate whose mode is converged (``filter.estimate``) when the policy answered "no
+        gain" or "stay" (so its interval and settle rules passed); the candidate of least
+        expected entropy plus move cost among those at least :data:`CONFIRM_LOOK_MIN_TURN`
+        from ``pan``. Records the command as the policy's own (its interval applies)."""
+        policy = self.policy
+        if (policy is None or d.values is None or d.reason not in ("no gain", "stay")
+                or est.state != "global" or not math.isfinite(pan)):  # fmt: skip
+            return None
+        if not self.localizer.config.filter.estimate.converged(est.covariance, est.cluster_weight):
+            return None
+        near = np.flatnonzero(np.abs(d.values.actions - pan) < CONFIRM_LOOK_MIN_TURN)
+        if near.size == d.values.actions.size:
+            return None
+        target = policy.clamp(float(d.values.actions[d.values.best(pan, policy.config.move_cost, near)]))
+        policy.last_command_time = time.time()
+        policy.last_command = target
+        return target
 
     # ------------------------------------------------------------------ the control thread
     def set_paused(self, target: str, value: bool) -> None:
