@@ -11,8 +11,8 @@ simulator's ``truth`` topic, and for each row:
 4. waits ``delay`` seconds and starts the daemon again;
 5. records for ``--window`` seconds: the first published state, the time from the restart to
    the first ``tracking`` pose (and from the first pose), the error of that pose, the largest
-   error of any ``tracking`` pose in the window, and the daemon's one-line verdict on the saved
-   state (reused, or refused and why).
+   error of any ``tracking`` pose in the window, the daemon's one-line verdict on the saved
+   state (reused, or refused and why) and the pan commands active vision sent.
 
 Rows: restart after 1 s and 60 s, a state stamped 30 days ago and a state of another map,
 each with the robot driving (it moves while the daemon is down) and standing still
@@ -32,6 +32,7 @@ import argparse
 import json
 import math
 import random
+import re
 import signal
 import sys
 import tempfile
@@ -119,7 +120,8 @@ def _verdict(log: Path, offset: int) -> str:
     text = log.read_text(errors="replace")[offset:]
     for line in text.splitlines():
         if "initial belief" in line:
-            return line.split("initial belief: ", 1)[-1].strip()
+            said = line.split("initial belief: ", 1)[-1].strip()
+            return re.sub(r" from \S+$", "", re.sub(r"saved pose in \S+ ", "", said))  # no paths
     return "(no initial-belief line)"
 
 

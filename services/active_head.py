@@ -13,12 +13,13 @@ It also owns the head-settle rule for the frames (:meth:`frame_at_rest`,
 and counts the frames taken while the head turned or settled.
 
 A converged belief the views have not confirmed yet (state ``global``: a recalled pose, or a
-global localization that has just converged) needs new views, and a standing robot gets
+global localization that has just converged) needs new views, and a STANDING robot gets
 them only from the head; the policy's expected entropy sees no gain in looking at a
-concentrated belief, so when it answers "no gain" or "stay" for such a belief the head makes a
-confirmation look instead (:meth:`ActiveHead._confirmation_look`, reason ``confirm``): to
-the candidate pan of least expected entropy at least :data:`CONFIRM_LOOK_MIN_TURN` from the
-present one, under the policy's interval and settle rules.
+concentrated belief, so when it answers "no gain" or "stay" for such a belief on a standing
+base the head makes a confirmation look instead (:meth:`ActiveHead._confirmation_look`,
+reason ``confirm``): to the candidate pan of least expected entropy at least
+:data:`CONFIRM_LOOK_MIN_TURN` from the present one, under the policy's interval and settle
+rules. A driving base makes new views itself.
 
 The switches are read by the loop and written by the control thread (``pause``,
 ``resume``, ``set_active_vision``), under a lock. Switching active vision off sends the head
@@ -51,7 +52,7 @@ from lino_loc.active_vision import (
 )
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
-from lino_loc.lost_detection import VIEW_THETA
+from lino_loc.lost_detection import VIEW_THETA, independent_views
 from lino_loc.pose_estimate import Estimate
 from services.messages import ActiveVisionInfo
 
@@ -62,6 +63,10 @@ _METHOD = ActiveVisionConfig()
 #: rad: the smallest turn of a confirmation look: one independent view's worth of camera turn
 #: (``lino_loc.lost_detection.VIEW_THETA``), so each look counts fully for the lost test.
 CONFIRM_LOOK_MIN_TURN = VIEW_THETA
+#: The base is standing when its odometry since the previous frame is less than this share of
+#: an independent view (``lino_loc.lost_detection.independent_views``: 3.5 mm or 3 mrad;
+#: encoder jitter of a tick or two is 0.1 mm).
+STANDING_VIEWS = 0.01
 
 #: The method's settings the service does not expose: the policy uses the defaults of
 #: lino_loc.active_vision.ActiveVisionConfig (22 candidate pans and 150 particles as in the
@@ -171,8 +176,10 @@ class ActiveHead:
                 self.frames_head_moving += 1
         return at_rest
 
-    def step(self, est: Estimate, stamp: float) -> float | None:
-        """Ask the policy and move the head; returns the pan sent (None: no command)."""
+    def step(self, est: Estimate, stamp: float, delta: Any = None) -> float | None:
+        """Ask the policy and move the head; returns the pan sent (None: no command).
+        ``delta``: the base's odometry increment since the previous frame (None: unknown, no
+        confirmation look)."""
         with self._lock:
             active = self.enabled and not self.paused and not self.head_paused
         if not active or self.policy is None or self.head is None:
@@ -187,7 +194,8 @@ class ActiveHead:
                 pan=state.pan, moving=state.moving, now=time.time(), frame_stamp=stamp,
                 doubt=est.doubt,
             )
-            look = self._confirmation_look(d, est, state.pan)
+            standing = delta is not None and independent_views(delta) < STANDING_VIEWS
+            look = self._confirmation_look(d, est, state.pan) if standing else None
             if look is not None:
                 d = Decision(look, "confirm", d.belief_entropy, d.values)
         except Exception as exc:  # noqa: BLE001 - active vision must not stop localization

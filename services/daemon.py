@@ -462,7 +462,7 @@ class Daemon:
         self.watch.dead_reckoning = False
         self._publish_pose(est, stamp, pan)
         self.status.frame_taken()
-        self.active.step(est, stamp)
+        self.active.step(est, stamp, delta)
 
     def _maybe_dead_reckon(self, mono: float, now: float) -> None:
         if not self.watch.due(mono, now):

@@ -106,9 +106,10 @@ class NoGainPolicy:
 
 
 def test_an_unconfirmed_converged_belief_gets_a_confirmation_look() -> None:
-    """state global with a converged mode, and the policy sees no gain: the head turns to the
-    least-entropy candidate at least CONFIRM_LOOK_MIN_TURN away (a standing robot gets new
-    views only so); tracking, or a belief not converged: nothing."""
+    """state global with a converged mode on a standing base, and the policy sees no gain:
+    the head turns to the least-entropy candidate at least CONFIRM_LOOK_MIN_TURN away (a
+    standing robot gets new views only so); tracking, a belief not converged, or a driving
+    base: nothing."""
     import dataclasses
 
     import numpy as np
@@ -120,10 +121,13 @@ def test_an_unconfirmed_converged_belief_gets_a_confirmation_look() -> None:
         a, head = _active(reading=HeadReading(pan=1.0))
         a.localizer.config = LocalizerConfig()  # type: ignore[attr-defined]
         a.policy = NoGainPolicy(reason)  # type: ignore[assignment]
-        assert a.step(estimate(state="tracking"), 5.0) is None
+        still = np.zeros(3)
+        assert a.step(estimate(state="tracking"), 5.0, still) is None
         spread = dataclasses.replace(estimate(state="global"), covariance=np.diag([1.0, 1.0, 0.3]))
-        assert a.step(spread, 5.0) is None
-        pan = a.step(estimate(state="global"), 5.0)
+        assert a.step(spread, 5.0, still) is None
+        assert a.step(estimate(state="global"), 5.0, np.array([0.05, 0.0, 0.0])) is None  # driving
+        assert a.step(estimate(state="global"), 5.0) is None  # the base's motion unknown
+        pan = a.step(estimate(state="global"), 5.0, np.array([1e-4, 0.0, 0.0]))  # encoder jitter
         assert pan is not None and CONFIRM_LOOK_MIN_TURN <= abs(pan - 1.0) < 0.6, pan
         assert head.commands == [(pan, 0.0)]
         assert a.info().last_decision == "confirm" and a.policy.last_command == pan  # type: ignore[union-attr]
