@@ -181,8 +181,9 @@ class LostDetector:
     def update(self, excess: float, delta: ArrayLike, learn: bool = True) -> bool:
         """One observation: ``excess`` = predictive log-likelihood minus the outlier floor
         (nats; -inf or nan: a miss), ``delta`` the camera's pose increment (dx, dy, dtheta)
-        since the last one (:func:`camera_increment`: the odometry's, with the pan change); ``learn``: the belief is trusted (tracking), so its hits and misses
-        teach rho. Returns whether the belief is lost."""
+        since the last one (:func:`camera_increment`: the odometry's, with the pan change);
+        ``learn``: the belief is trusted (tracking), so its hits and misses teach rho.
+        Returns whether the belief is lost."""
         v = independent_views(delta)
         if v <= 0.0:
             return self.lost
