@@ -24,11 +24,13 @@ Usage::
 
     python benchmarks/restart_table.py                 # all rows, a table
     python benchmarks/restart_table.py --json --rows 1s,other-map --window 40 --repeat 3
+    python benchmarks/restart_table.py --size 320x240     # the product's images (its own map)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import random
@@ -196,14 +198,15 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     print(f"acceptance (no tracking pose > {ACCEPT_M} m wrong): {'PASS' if not bad else 'FAIL ' + ','.join(bad)}")
 
 
-def run_rows(names: list[str], window: float, converge_timeout: float, repeat: int = 1) -> list[dict[str, Any]]:
+def run_rows(names: list[str], window: float, converge_timeout: float, repeat: int = 1,
+             settings: Settings = SETTINGS) -> list[dict[str, Any]]:
     results: list[dict[str, Any]] = []
     for drive in (True, False):
         todo = [ROWS[n] for _ in range(repeat) for n in names if ROWS[n].drive == drive]
         if not todo:
             continue
         with tempfile.TemporaryDirectory(prefix="restart-table-") as d:
-            rig = Rig(Path(d), SETTINGS)
+            rig = Rig(Path(d), settings)
             stream: Stream | None = None
             try:
                 rig.start_sim("--seed", "0", *([] if drive else ["--no-drive"]))
@@ -233,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--converge-timeout", type=float, default=120.0, help="s to wait for tracking before a kill")
     ap.add_argument("--repeat", type=int, default=1, help="run each row this many times")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    ap.add_argument("--size", default="80x60", help="camera and map images, WIDTHxHEIGHT (the product's: 320x240)")
     args = ap.parse_args(argv)
     names = [n for n in args.rows.split(",") if n]
     unknown = [n for n in names if n not in ROWS]
@@ -242,7 +246,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeat < 1:
         print(f"--repeat: must be >= 1, got {args.repeat}", file=sys.stderr)
         return 2
-    rows = run_rows(names, args.window, args.converge_timeout, args.repeat)
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+        if width < 8 or height < 8:
+            raise ValueError
+    except ValueError:
+        print(f"--size: expected WIDTHxHEIGHT (at least 8x8), got {args.size!r}", file=sys.stderr)
+        return 2
+    settings = dataclasses.replace(SETTINGS, width=width, height=height)
+    rows = run_rows(names, args.window, args.converge_timeout, args.repeat, settings)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:
