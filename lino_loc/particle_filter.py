@@ -96,8 +96,10 @@ FreeSpace = Callable[[FloatArray], NDArray[np.bool_]]
 #: (``set_pose(..., confirmed=False)``) must explain IN A ROW, while converged, before it is
 #: ``tracking`` (on top of ``filter.lost.confirm_views``): the saved pose is a prior of
 #: unknown age, and a belief concentrated near it by one ambiguous view is often wrong
-#: (the restart table, benchmarks/restart_table.py, in docs/results.md).
-RECALL_CONFIRM_VIEWS = 3.0
+#: (the restart table, benchmarks/restart_table.py, in docs/results.md). The head's turns
+#: count as views too (``lino_loc.lost_detection.camera_increment``): a few looks of active
+#: vision give 3 views, too few to tell a pose 0.5 m off on a driving robot; 5 do.
+RECALL_CONFIRM_VIEWS = 5.0
 
 __all__ = [
     "AuxiliaryParticleFilter",
