@@ -11,26 +11,30 @@ simulator's ``truth`` topic, and for each row:
 4. waits ``delay`` seconds and starts the daemon again;
 5. records for ``--window`` seconds: the first published state, the time from the restart to
    the first ``tracking`` pose (and from the first pose), the error of that pose, the largest
-   error of any ``tracking`` pose in the window, and the daemon's one-line verdict on the saved
-   state (reused, or refused and why).
+   error of any ``tracking`` pose in the window, the daemon's one-line verdict on the saved
+   state (reused, or refused and why) and the pan commands active vision sent.
 
-Rows: restart after 1 s and 60 s while the robot drives (it moves while the daemon is down),
-a state stamped 30 days ago, a state of another map, and a robot that stands still
-(``lino-loc sim --no-drive``; its first belief comes from an operator's ``set_pose`` at the
-true pose). Acceptance: no ``tracking`` pose more than 0.5 m wrong.
+Rows: restart after 1 s and 60 s, a state stamped 30 days ago and a state of another map,
+each with the robot driving (it moves while the daemon is down) and standing still
+(``lino-loc sim --no-drive``, rows ``still-...``; its first belief comes from an operator's
+``set_pose`` at the true pose, then active vision turns the head). Acceptance: no
+``tracking`` pose more than 0.5 m wrong.
 
 Usage::
 
     python benchmarks/restart_table.py                 # all rows, a table
     python benchmarks/restart_table.py --json --rows 1s,other-map --window 40 --repeat 3
+    python benchmarks/restart_table.py --size 320x240     # the product's images (its own map)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import random
+import re
 import signal
 import sys
 import tempfile
@@ -93,7 +97,12 @@ ROWS = {
     "60s": Row("60s", "kill -9 while tracking, restart after 60 s (robot driving)", 60.0),
     "30-days": Row("30-days", "saved stamp 30 days old, restart after 1 s", 1.0, edit="30-days"),
     "other-map": Row("other-map", "state saved for another map, restart after 1 s", 1.0, edit="other-map"),
-    "not-moved": Row("not-moved", "robot standing still, restart after 1 s", 1.0, drive=False),
+    "still-1s": Row("still-1s", "robot standing still, restart after 1 s", 1.0, drive=False),
+    "still-60s": Row("still-60s", "robot standing still, restart after 60 s", 60.0, drive=False),
+    "still-30-days": Row("still-30-days", "robot standing still, saved stamp 30 days old", 1.0,
+                         edit="30-days", drive=False),
+    "still-other-map": Row("still-other-map", "robot standing still, state saved for another map",
+                           1.0, edit="other-map", drive=False),
 }
 
 
@@ -113,8 +122,15 @@ def _verdict(log: Path, offset: int) -> str:
     text = log.read_text(errors="replace")[offset:]
     for line in text.splitlines():
         if "initial belief" in line:
-            return line.split("initial belief: ", 1)[-1].strip()
+            said = line.split("initial belief: ", 1)[-1].strip()
+            return re.sub(r" from \S+$", "", re.sub(r"saved pose in \S+ ", "", said))  # no paths
     return "(no initial-belief line)"
+
+
+def _head_commands(s: Stream, t: float) -> int | None:
+    """The pan commands active vision sent since the restart (its last status's count)."""
+    st = s.statuses_between(t, math.inf)
+    return (st[-1].get("active_vision") or {}).get("head_commands") if st else None
 
 
 def measure(rig: Rig, s: Stream, row: Row, window: float) -> dict[str, Any]:
@@ -157,6 +173,7 @@ def measure(rig: Rig, s: Stream, row: Row, window: float) -> dict[str, Any]:
         "max_tracking_error_m": max(tracking_errs) if tracking_errs else None,
         "tracking_poses": len(tracking_errs),
         "verdict": _verdict(rig.daemon_log, offset),
+        "head_commands": _head_commands(s, t_restart),
     }
     out["ok"] = out["max_tracking_error_m"] is None or out["max_tracking_error_m"] <= ACCEPT_M
     return out
@@ -181,14 +198,15 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     print(f"acceptance (no tracking pose > {ACCEPT_M} m wrong): {'PASS' if not bad else 'FAIL ' + ','.join(bad)}")
 
 
-def run_rows(names: list[str], window: float, converge_timeout: float, repeat: int = 1) -> list[dict[str, Any]]:
+def run_rows(names: list[str], window: float, converge_timeout: float, repeat: int = 1,
+             settings: Settings = SETTINGS) -> list[dict[str, Any]]:
     results: list[dict[str, Any]] = []
     for drive in (True, False):
         todo = [ROWS[n] for _ in range(repeat) for n in names if ROWS[n].drive == drive]
         if not todo:
             continue
         with tempfile.TemporaryDirectory(prefix="restart-table-") as d:
-            rig = Rig(Path(d), SETTINGS)
+            rig = Rig(Path(d), settings)
             stream: Stream | None = None
             try:
                 rig.start_sim("--seed", "0", *([] if drive else ["--no-drive"]))
@@ -218,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--converge-timeout", type=float, default=120.0, help="s to wait for tracking before a kill")
     ap.add_argument("--repeat", type=int, default=1, help="run each row this many times")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    ap.add_argument("--size", default="80x60", help="camera and map images, WIDTHxHEIGHT (the product's: 320x240)")
     args = ap.parse_args(argv)
     names = [n for n in args.rows.split(",") if n]
     unknown = [n for n in names if n not in ROWS]
@@ -227,7 +246,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeat < 1:
         print(f"--repeat: must be >= 1, got {args.repeat}", file=sys.stderr)
         return 2
-    rows = run_rows(names, args.window, args.converge_timeout, args.repeat)
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+        if width < 8 or height < 8:
+            raise ValueError
+    except ValueError:
+        print(f"--size: expected WIDTHxHEIGHT (at least 8x8), got {args.size!r}", file=sys.stderr)
+        return 2
+    settings = dataclasses.replace(SETTINGS, width=width, height=height)
+    rows = run_rows(names, args.window, args.converge_timeout, args.repeat, settings)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:

@@ -10,7 +10,8 @@ daemon is down) and keeps them with their reception times.
 
 The map is the integration tests' (the office surveyed every 50 cm and 15 deg, 80 x 60
 images, 5 features), built once by :func:`services.sim_launcher.ensure_sim_map` and cached
-in the temporary folder.
+in the temporary folder; for other image sizes (``Settings.width`` x ``height``) the same
+survey at that size (:func:`map_cache`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,11 @@ import zmq
 
 ROOT = Path(__file__).resolve().parents[1]
 MAP_CACHE = Path(tempfile.gettempdir()) / "lino-loc-test-maps" / "office-80x60-50cm-15deg-5f.npz"
+
+
+def map_cache(width: int = 80, height: int = 60) -> Path:
+    """The cached map for images of ``width`` x ``height`` (80 x 60: :data:`MAP_CACHE`)."""
+    return MAP_CACHE.with_name(f"office-{width}x{height}-50cm-15deg-5f.npz")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 _PORTS = random.Random(os.getpid())
 
@@ -89,13 +95,13 @@ port = "{head}"
 kind = "serial"
 port = "{odometry}"
 [map]
-path = "{MAP_CACHE}"
+path = "{map_cache(s.width, s.height)}"
 [map.build]
 world = "office"
 step = 0.5
 heading_step_deg = 15.0
-width = 80
-height = 60
+width = {s.width}
+height = {s.height}
 features = 5
 [localizer.filter]
 n_particles = {s.particles}

@@ -9,7 +9,8 @@ renderer) behind it, and the :class:`Device` life cycle they share (``open``, ``
 - :class:`PanTiltHead` -> :class:`HeadState` (present pan/tilt; the camera heading is the
   robot heading plus the pan angle, ``lino_loc.poses.camera_pose``);
 - :class:`Odometry` -> :class:`OdometryIncrement` (pose increments of the base in its own
-  frame, the input of the odometry action model).
+  frame, the input of the odometry action model), and :class:`BoardCounters` (the board's
+  absolute counters, which outlive the daemon: how far the wheels went across a restart).
 
 All of them report a :class:`DeviceHealth`. Adapters never raise into the caller for device
 glitches (timeouts, corrupt packets, an unplugged cable): they retry (reconnecting with
@@ -261,12 +262,39 @@ class OdometryIncrement:
     sequence: int = 0
 
 
+@dataclass(frozen=True)
+class BoardCounters:
+    """The odometry board's absolute counters at one sample. They count from the board's
+    power-up whatever the daemon does, so two readings, even from two runs of the daemon,
+    tell how far each wheel went in between (``drivers.odometry_protocol.wheel_travel``),
+    unless the board restarted meanwhile (its clock then went back or jumped).
+
+    ``stamp``: host time of the sample (s since the epoch, the increments' clock);
+    ``board_ms``: the board's clock (ms, unsigned 32-bit, wraps); ``left``, ``right``: the raw
+    encoder counts (unsigned 32-bit, wrap); ``left_m_per_tick``, ``right_m_per_tick``: wheel
+    travel per count (m, signed by the encoder's direction), ``track_width`` (m): the
+    geometry of the driver that read them.
+    """
+
+    stamp: float
+    board_ms: int
+    left: int
+    right: int
+    left_m_per_tick: float
+    right_m_per_tick: float
+    track_width: float
+
+
 @runtime_checkable
 class Odometry(Device, Protocol):
-    """Timestamped pose increments of the base."""
+    """Timestamped pose increments of the base, and the board's absolute counters."""
 
     def open(self) -> bool | None:
         """Start receiving. Never raises for a missing device: health says so instead."""
 
     def read(self, timeout: float | None = None) -> list[OdometryIncrement]:
         """Increments received since the previous call (waits up to ``timeout`` s for one)."""
+
+    def counters(self) -> BoardCounters | None:
+        """The board's absolute counters at its latest valid sample (None: no sample yet, or
+        a source without absolute counters)."""

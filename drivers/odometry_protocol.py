@@ -20,6 +20,14 @@ in the base frame at the start of the interval (x forward, y left, theta CCW, RE
 Taylor series below |dtheta| = 1e-6; this is the odometry increment u_t consumed by the
 filter's motion model.
 
+The counters are absolute: they count from the board's power-up and outlive the daemon, so
+:func:`wheel_travel` tells how far each wheel went between two readings
+(:class:`drivers.interfaces.BoardCounters`) taken by two runs of the daemon, unless the board
+restarted in between. The protocol has no boot id; a restart shows as the board's clock
+disagreeing with the host's over the same interval (it went back, or it advanced by more
+than :data:`CLOCK_TOLERANCE_S` plus :data:`CLOCK_TOLERANCE_FRACTION` of the interval more
+or less than the host's).
+
 Usage::
 
     from drivers.odometry_protocol import format_line, parse_line, arc_increment
@@ -32,6 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from drivers.interfaces import BoardCounters
 
 TALKER = b"ODO"
 U32 = 1 << 32
@@ -117,6 +127,34 @@ def wrap_delta(new: int, old: int) -> int:
     """Signed difference of two unsigned 32-bit counters (valid for |delta| < 2^31)."""
     d = (new - old) % U32
     return d - U32 if d >= U32 // 2 else d
+
+
+#: s: how far the board's clock may disagree with the host's over an interval (serial latency
+#: of the two samples' stamps, clock steps) before :func:`wheel_travel` takes it for a board
+#: restart; plus :data:`CLOCK_TOLERANCE_FRACTION` of the interval (crystal drift, 1 %).
+CLOCK_TOLERANCE_S = 2.0
+CLOCK_TOLERANCE_FRACTION = 0.01
+
+
+def wheel_travel(then: BoardCounters, now: BoardCounters) -> tuple[float, float] | str:
+    """The net travel (m) of the left and right wheels from ``then`` to ``now``, by the
+    signed 32-bit differences of the counts (:func:`wrap_delta`) times ``now``'s metres per
+    tick; or, when the readings cannot be of one board run, why (in a few words): the
+    board's clock went back, or it advanced by more than ``CLOCK_TOLERANCE_S +
+    CLOCK_TOLERANCE_FRACTION * host`` more or less than the host clock did (``host`` = the
+    stamps' difference). Net travel: a motion whose wheel travels cancel (forward, then back
+    the same way) counts as none."""
+    host = now.stamp - then.stamp
+    board = wrap_delta(now.board_ms, then.board_ms) / 1000.0
+    if host < -CLOCK_TOLERANCE_S:
+        return f"the readings are out of order (host clock {host:.1f} s)"
+    if board < 0.0:
+        return f"the board's clock went back {-board:.1f} s: the board restarted"
+    if abs(board - host) > CLOCK_TOLERANCE_S + CLOCK_TOLERANCE_FRACTION * abs(host):
+        return (f"the board's clock advanced {board:.1f} s while the host's advanced "
+                f"{host:.1f} s: the board restarted")  # fmt: skip
+    return (wrap_delta(now.left, then.left) * now.left_m_per_tick,
+            wrap_delta(now.right, then.right) * now.right_m_per_tick)  # fmt: skip
 
 
 def arc_increment(d_left: ArrayLike, d_right: ArrayLike, track_width: float) -> NDArray[np.float64]:

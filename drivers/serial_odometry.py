@@ -4,6 +4,9 @@ Implements :class:`drivers.interfaces.Odometry`. A reader thread reads the ``$OD
 stream (``drivers.odometry_protocol``, docs/protocols.md), turns consecutive encoder
 counts into pose increments of the base (exact arc of a differential drive, wheel radius,
 ticks per revolution and track width from the configuration) and queues them for ``read``.
+``counters`` gives the board's absolute counters at the latest valid line
+(:class:`drivers.interfaces.BoardCounters`, stamped like the increments): they outlive the
+daemon, so the daemon can tell how far the robot went while it was down.
 
 Robustness (nothing here raises into the caller):
 - counters wrap modulo 2^32 (signed 32-bit difference);
@@ -47,7 +50,13 @@ import serial
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.backoff import Backoff
-from drivers.interfaces import DeviceHealth, HealthState, HealthTracker, OdometryIncrement
+from drivers.interfaces import (
+    BoardCounters,
+    DeviceHealth,
+    HealthState,
+    HealthTracker,
+    OdometryIncrement,
+)
 from drivers.odometry_protocol import (
     MAX_LINE,
     LineError,
@@ -107,6 +116,7 @@ class SerialOdometry:
         self._thread: threading.Thread | None = None
         self._ser: serial.Serial | None = None
         self._prev: OdometrySample | None = None
+        self._counters: BoardCounters | None = None  # at the latest valid line
         self._t_unwrapped_ms = 0
         self._offsets: collections.deque[tuple[float, float]] = collections.deque()
         self._last_valid = time.monotonic()
@@ -153,6 +163,10 @@ class SerialOdometry:
             out = list(self._queue)
             self._queue.clear()
         return out
+
+    def counters(self) -> BoardCounters | None:
+        """The board's absolute counters at the latest valid line (None before the first)."""
+        return self._counters
 
     # ---------------------------------------------------------------------------------------
     # reader thread
@@ -267,7 +281,7 @@ class SerialOdometry:
         if prev is None:
             self._t_unwrapped_ms = s.t_ms
             self._offsets.clear()
-            self._board_time(s, host_time)
+            self._keep_counters(s, self._board_time(s, host_time))
             self._mark_ok()
             return
         dt_ms = wrap_delta(s.t_ms, prev.t_ms)
@@ -292,13 +306,14 @@ class SerialOdometry:
             log.warning("%s", msg)
             self._t_unwrapped_ms = s.t_ms
             self._offsets.clear()
-            self._board_time(s, host_time)
+            self._keep_counters(s, self._board_time(s, host_time))
             return
         if d_seq > 1:
             self._health.count("gap_events")
             self._health.count("lines_missed", d_seq - 1)
         self._t_unwrapped_ms += dt_ms
         stamp = self._board_time(s, host_time)
+        self._keep_counters(s, stamp)
         dx, dy, dth = arc_step(dl, dr, c.track_width)
         inc = OdometryIncrement(
             stamp=stamp, dx=float(dx), dy=float(dy), dtheta=float(dth),
@@ -316,6 +331,14 @@ class SerialOdometry:
                 self._health.count("merged")
             self._cond.notify_all()
         self._mark_ok()
+
+    def _keep_counters(self, s: OdometrySample, stamp: float) -> None:
+        c = self.config
+        self._counters = BoardCounters(
+            stamp=stamp, board_ms=s.t_ms, left=s.left, right=s.right,
+            left_m_per_tick=c.left_sign * self._metres_per_tick,
+            right_m_per_tick=c.right_sign * self._metres_per_tick, track_width=c.track_width,
+        )  # fmt: skip
 
     def _noise(self, what: str, corrupt: bool = True) -> None:
         """Line noise (``corrupt``: a whole line lost, counted): the health DEGRADED, naming

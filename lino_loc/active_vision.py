@@ -511,6 +511,7 @@ Reason = Literal[
     "stay",
     "move",
     "home",
+    "confirm",  # the service's confirmation look (services.active_head), never the policy's
 ]
 
 

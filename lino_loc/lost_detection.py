@@ -23,10 +23,14 @@ rather than a fixed ratio:
   taught it. Where the views are unreliable (rho low) a miss carries little evidence, where
   they are reliable a miss is strong evidence; when rho <= rho_0 a view says nothing.
 - Views, not frames, are counted: each frame counts as v_t = min(1, |dxy| / VIEW_XY +
-  |dtheta| / VIEW_THETA) of an independent view (:func:`independent_views`: the odometry
-  increment over the sensor model's kernel widths; poses closer than that are not told apart
-  by the model, and consecutive frames' hits and misses come in runs). A frame with v_t = 0
-  changes nothing.
+  |dtheta| / VIEW_THETA) of an independent view (:func:`independent_views`) of the CAMERA's
+  pose increment over the sensor model's kernel widths (poses closer than that are not told
+  apart by the model, and consecutive frames' hits and misses come in runs). The camera sits
+  on the robot's vertical axis (``lino_loc.poses.camera_pose``), so its increment is the
+  odometry increment with the head's pan change added to the turn (:func:`camera_increment`):
+  a standing robot whose head pans sees new views, one whose head holds still does not. A
+  pan change under :data:`MIN_PAN_CHANGE` is the servo's holding jitter, not a new view. A
+  frame with v_t = 0 changes nothing.
 
 When the views become less familiar all at once (lights switched), ``lino_loc.appearance_change``
 makes it forget the learnt rho and the evidence (:meth:`LostDetector.appearance_changed`).
@@ -60,6 +64,12 @@ MEMORY_SUSPECT = 0.995  # ... per view while evidence of being lost stands
 VIEW_XY = 0.35  # m of travel that make one independent view (the sensor model's sigma_xy)
 VIEW_THETA = 0.3  # rad of turn that make one independent view (the sensor model's sigma_theta)
 WARMUP_VIEWS = 5.0  # views that only teach the hit rate after a full reset
+#: rad: a change of the head's pan between two observations smaller than this is not a camera
+#: motion (:func:`camera_increment`). Above a servo's holding jitter (a Dynamixel X holds its
+#: goal within a few ticks of 2 pi / 4096 = 0.0015 rad), and no larger than the smallest turn
+#: active vision makes (``ActiveVisionConfig.pan_tolerance``, 0.02 rad: a best action closer
+#: than that is "stay"; its candidate pans are 0.25 rad apart).
+MIN_PAN_CHANGE = 0.02
 
 
 class LostConfig(BaseModel):
@@ -82,10 +92,27 @@ def independent_views(
     delta: ArrayLike, view_xy: float = VIEW_XY, view_theta: float = VIEW_THETA
 ) -> float:
     """How much of an independent view one frame is: min(1, |dxy| / view_xy + |dtheta| /
-    view_theta) for the odometry increment (dx, dy, dtheta) since the previous frame (poses
-    closer than the sensor model's kernel widths are not told apart by it); in [0, 1]."""
+    view_theta) for the pose increment (dx, dy, dtheta) since the previous frame, the
+    camera's (:func:`camera_increment`) or the robot's (poses closer than the sensor model's
+    kernel widths are not told apart by it); in [0, 1]."""
     d = np.asarray(delta, dtype=np.float64).reshape(3)
     return min(1.0, math.hypot(float(d[0]), float(d[1])) / view_xy + abs(float(d[2])) / view_theta)
+
+
+def camera_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:
+    """The camera's pose increment (dx, dy, dtheta + dpan) for the odometry increment
+    ``delta`` = (dx, dy, dtheta) (robot frame) and the head's pan change ``pan_change`` (rad,
+    wrapped to [-pi, pi]) since the previous observation; |pan_change| < :data:`MIN_PAN_CHANGE`
+    counts as 0, and a non-finite one (no pan known) as 0. The camera shares the robot's
+    position, so only the heading differs; a turn of the base undone by the head (dtheta =
+    -dpan) leaves the camera where it was."""
+    d = np.array(delta, dtype=np.float64).reshape(3)
+    dp = float(pan_change)
+    if math.isfinite(dp):
+        dp = math.remainder(dp, 2.0 * math.pi)
+        if abs(dp) >= MIN_PAN_CHANGE:
+            d[2] += dp
+    return d
 
 
 @dataclass
@@ -153,9 +180,10 @@ class LostDetector:
 
     def update(self, excess: float, delta: ArrayLike, learn: bool = True) -> bool:
         """One observation: ``excess`` = predictive log-likelihood minus the outlier floor
-        (nats; -inf or nan: a miss), ``delta`` the odometry increment (dx, dy, dtheta) since
-        the last one; ``learn``: the belief is trusted (tracking), so its hits and misses
-        teach rho. Returns whether the belief is lost."""
+        (nats; -inf or nan: a miss), ``delta`` the camera's pose increment (dx, dy, dtheta)
+        since the last one (:func:`camera_increment`: the odometry's, with the pan change);
+        ``learn``: the belief is trusted (tracking), so its hits and misses teach rho.
+        Returns whether the belief is lost."""
         v = independent_views(delta)
         if v <= 0.0:
             return self.lost

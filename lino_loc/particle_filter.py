@@ -13,7 +13,8 @@ steps (:meth:`AuxiliaryParticleFilter.update`):
 2. watch the appearance (``lino_loc.appearance_change``): when the views become less familiar
    all at once (lights switched), kidnap recovery and the lost test relearn what normal looks
    like; the belief is left alone;
-3. test for lost (``lino_loc.lost_detection``): a CUSUM test of the belief against the views;
+3. test for lost (``lino_loc.lost_detection``): a CUSUM test of the belief against the views
+   (the camera's motion, base and head pan, makes a view new);
 4. recover (``lino_loc.kidnap_recovery``): AMCL's w_slow / w_fast averages decide injection
    before convergence, validated candidate sets while tracking; the component returns a
    verdict, the filter carries it out;
@@ -66,7 +67,13 @@ from lino_loc.apf import StepResult, apf_step
 from lino_loc.appearance_change import AppearanceChangeConfig, AppearanceChangeDetector
 from lino_loc.errors import LinoLocError
 from lino_loc.kidnap_recovery import KidnapRecovery, RecoveryConfig, Verdict, outlier_floor
-from lino_loc.lost_detection import HIT_NATS, LostConfig, LostDetector, independent_views
+from lino_loc.lost_detection import (
+    HIT_NATS,
+    LostConfig,
+    LostDetector,
+    camera_increment,
+    independent_views,
+)
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pose_estimate import (
     Estimate,
@@ -89,8 +96,10 @@ FreeSpace = Callable[[FloatArray], NDArray[np.bool_]]
 #: (``set_pose(..., confirmed=False)``) must explain IN A ROW, while converged, before it is
 #: ``tracking`` (on top of ``filter.lost.confirm_views``): the saved pose is a prior of
 #: unknown age, and a belief concentrated near it by one ambiguous view is often wrong
-#: (the restart table, benchmarks/restart_table.py, in docs/results.md).
-RECALL_CONFIRM_VIEWS = 3.0
+#: (the restart table, benchmarks/restart_table.py, in docs/results.md). The head's turns
+#: count as views too (``lino_loc.lost_detection.camera_increment``): a few looks of active
+#: vision give 3 views, too few to tell a pose 0.5 m off on a driving robot; 5 do.
+RECALL_CONFIRM_VIEWS = 5.0
 
 __all__ = [
     "AuxiliaryParticleFilter",
@@ -247,6 +256,7 @@ class AuxiliaryParticleFilter:
         self.recovery = KidnapRecovery(c.recovery, motion_model, self._resample)
         self.appearance_watch = AppearanceChangeDetector() if c.appearance_change.enabled else None
         self.injected = 0  # particles injected or drawn as candidates by the last update
+        self._last_pan: float | None = None  # the head's pan at the last observation
         self.start_global()
 
     # ----------------------------------------------------------------- the weighted set
@@ -408,13 +418,15 @@ class AuxiliaryParticleFilter:
         if mixture is None:
             self.predict(d)
             return math.nan
+        pan_change = math.nan if self._last_pan is None else float(pan) - self._last_pan
+        self._last_pan = float(pan)
         if self._uniform_prior and self.config.global_proposal_fraction > 0.0:
             return self.global_seed(d, pan, mixture)
         self._uniform_prior = False
         loglik, ll = self._predict_and_weight(d, pan, mixture)
         self._watch_appearance(mixture.novelty, d)
         floor = outlier_floor(mixture)
-        self._test_lost(ll, floor, d)
+        self._test_lost(ll, floor, camera_increment(d, pan_change))
         self._recover(ll, floor, d, loglik, mixture, pan)
         self._resample_if_degenerate()
         self._update_state()
@@ -458,8 +470,11 @@ class AuxiliaryParticleFilter:
     def _test_lost(self, ll: float, floor: float, d: FloatArray) -> None:
         """Step 3: the lost test on the likelihood's excess over the outlier floor; the hit
         rate is learnt from trusted beliefs (tracking, or lost: slowly), not from a search.
-        For a recalled belief not yet confirmed, the run of hit views grows by this frame's
-        independent views on a hit and restarts on a miss (a frame without motion: neither)."""
+        ``d`` is the CAMERA's increment since the last observation (``lino_loc.lost_detection.
+        camera_increment``: the odometry's with the head's pan change), so a standing robot
+        whose head pans sees new views. For a recalled belief not yet confirmed, the run of
+        hit views grows by this frame's independent views on a hit and restarts on a miss (a
+        frame where the camera did not move: neither)."""
         excess = ll - floor if math.isfinite(floor) else ll
         if self._recall_run is not None:
             v = independent_views(d)

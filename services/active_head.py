@@ -12,6 +12,15 @@ It also owns the head-settle rule for the frames (:meth:`frame_at_rest`,
 :class:`lino_loc.active_vision.HeadSettle`, the rule the policy applies to its own readings)
 and counts the frames taken while the head turned or settled.
 
+A converged belief the views have not confirmed yet (state ``global``: a recalled pose, or a
+global localization that has just converged) needs new views, and a STANDING robot gets
+them only from the head; the policy's expected entropy sees no gain in looking at a
+concentrated belief, so when it answers "no gain" or "stay" for such a belief on a standing
+base the head makes a confirmation look instead (:meth:`ActiveHead._confirmation_look`,
+reason ``confirm``): to the candidate pan of least expected entropy at least
+:data:`CONFIRM_LOOK_MIN_TURN` from the present one, under the policy's interval and settle
+rules. A driving base makes new views itself.
+
 The switches are read by the loop and written by the control thread (``pause``,
 ``resume``, ``set_active_vision``), under a lock. Switching active vision off sends the head
 back to pan 0 (looking ahead) unless the head is paused.
@@ -31,17 +40,33 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from lino_loc.active_vision import ActionEvaluator, ActivePolicy, ActiveVisionConfig, HeadSettle
+from lino_loc.active_vision import (
+    ActionEvaluator,
+    ActivePolicy,
+    ActiveVisionConfig,
+    Decision,
+    HeadSettle,
+)
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
+from lino_loc.lost_detection import VIEW_THETA, independent_views
 from lino_loc.pose_estimate import Estimate
 from services.messages import ActiveVisionInfo
 
 log = logging.getLogger("lino_loc.service")
 
 _METHOD = ActiveVisionConfig()
+
+#: rad: the smallest turn of a confirmation look: one independent view's worth of camera turn
+#: (``lino_loc.lost_detection.VIEW_THETA``), so each look counts fully for the lost test.
+CONFIRM_LOOK_MIN_TURN = VIEW_THETA
+#: The base is standing when its odometry since the previous frame is less than this share of
+#: an independent view (``lino_loc.lost_detection.independent_views``: 3.5 mm or 3 mrad;
+#: encoder jitter of a tick or two is 0.1 mm).
+STANDING_VIEWS = 0.01
 
 #: The method's settings the service does not expose: the policy uses the defaults of
 #: lino_loc.active_vision.ActiveVisionConfig (22 candidate pans and 150 particles as in the
@@ -151,8 +176,10 @@ class ActiveHead:
                 self.frames_head_moving += 1
         return at_rest
 
-    def step(self, est: Estimate, stamp: float) -> float | None:
-        """Ask the policy and move the head; returns the pan sent (None: no command)."""
+    def step(self, est: Estimate, stamp: float, delta: Any = None) -> float | None:
+        """Ask the policy and move the head; returns the pan sent (None: no command).
+        ``delta``: the base's odometry increment since the previous frame (None: unknown, no
+        confirmation look)."""
         with self._lock:
             active = self.enabled and not self.paused and not self.head_paused
         if not active or self.policy is None or self.head is None:
@@ -167,6 +194,10 @@ class ActiveHead:
                 pan=state.pan, moving=state.moving, now=time.time(), frame_stamp=stamp,
                 doubt=est.doubt,
             )
+            standing = delta is not None and independent_views(delta) < STANDING_VIEWS
+            look = self._confirmation_look(d, est, state.pan) if standing else None
+            if look is not None:
+                d = Decision(look, "confirm", d.belief_entropy, d.values)
         except Exception as exc:  # noqa: BLE001 - active vision must not stop localization
             log.warning("active vision failed: %s: %s", type(exc).__name__, exc)
             return None
@@ -180,6 +211,26 @@ class ActiveHead:
         log.debug("active vision: pan -> %.2f rad", d.command)
         self.head.command(float(d.command), 0.0)
         return float(d.command)
+
+    def _confirmation_look(self, d: Decision, est: Estimate, pan: float) -> float | None:
+        """The pan of a confirmation look (module docstring) or None: only for a ``global``
+        estimate whose mode is converged (``filter.estimate``) when the policy answered "no
+        gain" or "stay" (so its interval and settle rules passed); the candidate of least
+        expected entropy plus move cost among those at least :data:`CONFIRM_LOOK_MIN_TURN`
+        from ``pan``. Records the command as the policy's own (its interval applies)."""
+        policy = self.policy
+        if (policy is None or d.values is None or d.reason not in ("no gain", "stay")
+                or est.state != "global" or not math.isfinite(pan)):  # fmt: skip
+            return None
+        if not self.localizer.config.filter.estimate.converged(est.covariance, est.cluster_weight):
+            return None
+        near = np.flatnonzero(np.abs(d.values.actions - pan) < CONFIRM_LOOK_MIN_TURN)
+        if near.size == d.values.actions.size:
+            return None
+        target = policy.clamp(float(d.values.actions[d.values.best(pan, policy.config.move_cost, near)]))
+        policy.last_command_time = time.time()
+        policy.last_command = target
+        return target
 
     # ------------------------------------------------------------------ the control thread
     def set_paused(self, target: str, value: bool) -> None:

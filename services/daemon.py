@@ -44,7 +44,9 @@ global localization.
 
 Starting belief: the saved pose and covariance when the checks of
 :func:`services.persistence.refusal` pass (the same map, recent, inside the map, a sane
-covariance, saved while tracking), its standard deviations raised to at least
+covariance, saved while tracking, and barely moved since by the odometry board's counters:
+the odometry worker starts first and the start waits up to :data:`ODOMETRY_WAIT_S` for
+them), its standard deviations raised to at least
 :func:`restore_min_std` of its age, as a belief the views must confirm (state ``global``
 until they do); else global localization, with the refusal's reason in the log. Temporary
 files of an interrupted save are removed first.
@@ -69,7 +71,7 @@ from typing import Any, TypedDict
 import numpy as np
 import zmq
 
-from drivers.interfaces import Odometry, PanTiltHead, StereoCamera, StereoFrame
+from drivers.interfaces import BoardCounters, Odometry, PanTiltHead, StereoCamera, StereoFrame
 from lino_loc.atomic_file import remove_stale_temps
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
@@ -91,7 +93,14 @@ from services.device_threads import (
     OdometryWorker,
 )
 from services.messages import PersistenceInfo, PosePortInfo
-from services.persistence import RestoreContext, SavedState, StateSaver, load_state, refusal
+from services.persistence import (
+    RestoreContext,
+    SavedState,
+    StateSaver,
+    board_motion,
+    load_state,
+    refusal,
+)
 from services.publisher import PosePublisher, Publisher, RateLimiter
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
 from services.truth_relay import TruthRelay
@@ -103,15 +112,18 @@ log = logging.getLogger("lino_loc.service")
 #: (the time since the save: up to ``persistence.save_period_s`` after a kill -9, plus the
 #: downtime) by :data:`RESTORE_DRIFT_PER_S`, a base driving on at a typical top speed
 #: (0.3 m/s, the simulated base's; 0.1 rad/s of turning), up to :data:`RESTORE_MAX_STD`.
-#: The odometry board's counters would tell how far the robot went since the save, but the
-#: odometry driver hands the daemon increments only, so the motion since the save is unknown
-#: and the spread grows with the time instead. After more than ~1.5 s the position spread
+#: (The odometry board's counters refuse a state whose robot moved more than "barely",
+#: ``services.persistence.board_motion``; the spread still grows with the time, since they
+#: see net wheel travel only and may be unknown.) After more than ~1.5 s the position spread
 #: exceeds ``filter.estimate.converged_std_xy`` (0.5 m): the views must concentrate the
 #: belief again before they confirm it (the restart table, benchmarks/restart_table.py, in
 #: docs/results.md).
 RESTORE_MIN_STD = (0.1, 0.1, 0.05)
 RESTORE_DRIFT_PER_S = (0.3, 0.3, 0.1)  # m/s, m/s, rad/s
 RESTORE_MAX_STD = (1.0, 1.0, 0.5)
+#: s the start waits for the odometry board's first counters when a saved state has counters
+#: to compare them with (the board sends 50 lines a second; the serial port opens in ms).
+ODOMETRY_WAIT_S = 2.0
 
 
 def restore_min_std(age_s: float) -> np.ndarray:
@@ -252,7 +264,7 @@ class Daemon:
         self.active = ActiveHead(
             cfg.active_vision, (head.pan_min, head.pan_max), self.localizer, self.heads, head_worker
         )
-        self.saver = StateSaver(cfg.persistence.state_file)
+        self.saver = StateSaver(cfg.persistence.state_file, lambda: self.odometry.counters)
         self.publisher: Publisher | None = None
         self.poses: PosePublisher | None = None
         self.control: ControlServer | None = None
@@ -288,9 +300,11 @@ class Daemon:
             self.publisher.close()
             raise
         self._remove_leftovers()
+        self.workers["odometry"].start()  # its counters may decide the initial belief
         self._initial_belief()
-        for w in self.workers.values():
-            w.start()
+        for name, w in self.workers.items():
+            if name != "odometry":
+                w.start()
         self.control.start()
         self.saver.start()
         if self.truth_endpoint:
@@ -322,9 +336,11 @@ class Daemon:
             log.info("initial belief: %s", self.initial_belief)
             return
         b = self.localizer.bounds
+        counters = self._board_counters(saved)
         now = time.time()
         why = refusal(saved, RestoreContext(
             now, self.status.map_info.checksum, (b.x_min, b.x_max, b.y_min, b.y_max), p.max_age_s,
+            counters,
         ))  # fmt: skip
         if why is not None:
             self.localizer.start_global()
@@ -338,9 +354,17 @@ class Daemon:
         self.localizer.set_pose(saved.mean(), cov, confirmed=False)
         self.initial_belief = (
             f"the saved pose ({saved.pose.x:.2f}, {saved.pose.y:.2f}, {saved.pose.theta:.2f}), "
-            f"{age:.0f} s old, to be confirmed by the views"
+            f"{age:.0f} s old, to be confirmed by the views; {board_motion(saved, counters).note}"
         )
         log.info("initial belief: %s from %s", self.initial_belief, p.state_file)
+
+    def _board_counters(self, saved: SavedState) -> BoardCounters | None:
+        """The odometry board's counters now, waiting up to :data:`ODOMETRY_WAIT_S` for the
+        first when ``saved`` has counters to compare them with (None: none came)."""
+        deadline = time.monotonic() + (ODOMETRY_WAIT_S if saved.odometry is not None else 0.0)
+        while self.odometry.counters is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return self.odometry.counters
 
     def _persistence_info(self) -> PersistenceInfo:
         return PersistenceInfo(initial_belief=self.initial_belief, saves=self.saver.saves,
@@ -442,7 +466,7 @@ class Daemon:
         self.watch.dead_reckoning = False
         self._publish_pose(est, stamp, pan)
         self.status.frame_taken()
-        self.active.step(est, stamp)
+        self.active.step(est, stamp, delta)
 
     def _maybe_dead_reckon(self, mono: float, now: float) -> None:
         if not self.watch.due(mono, now):

@@ -49,6 +49,7 @@ import numpy as np
 
 from drivers.backoff import Backoff
 from drivers.interfaces import (
+    BoardCounters,
     Device,
     DeviceHealth,
     HeadState,
@@ -155,6 +156,8 @@ class OdometryBuffer:
         self.max_spans = max_spans
         self.received = 0
         self.last_stamp: float | None = None
+        #: the board's absolute counters at its latest sample (None: none yet)
+        self.counters: BoardCounters | None = None
 
     def add(self, increments: list[OdometryIncrement]) -> None:
         with self._lock:
@@ -411,7 +414,8 @@ class CameraWorker(DeviceWorker[StereoCamera]):
 
 
 class OdometryWorker(DeviceWorker[Odometry]):
-    """Moves increments (``Odometry.read``) into an :class:`OdometryBuffer`."""
+    """Moves increments (``Odometry.read``) into an :class:`OdometryBuffer`, and the
+    board's absolute counters (``Odometry.counters``) into its ``counters``."""
 
     kind = "odometry"
 
@@ -423,6 +427,9 @@ class OdometryWorker(DeviceWorker[Odometry]):
         incs = device.read(timeout=0.1)
         if incs:
             self.buffer.add(incs)
+        counters = device.counters()
+        if counters is not None:
+            self.buffer.counters = counters
 
 
 class HeadWorker(DeviceWorker[PanTiltHead]):

@@ -379,7 +379,8 @@ class ActiveVisionInfo(BaseModel):
     last_decision: str | None = Field(
         None,
         description="the policy's last answer: move, home, converged, no gain, stay, settling, "
-        "interval, head moving, no new frame",
+        "interval, head moving, no new frame; or confirm (a look for new views of a converged "
+        "belief not yet confirmed)",
     )
     last_command_rad: Finite | None = Field(None, description="the last pan command (radians)")
     frames_head_moving: int = Field(

@@ -16,10 +16,22 @@ A saved state is reused only when :func:`refusal` finds nothing against it: save
 stamped in the future beyond :data:`FUTURE_TOLERANCE_S`), inside the map's bounds (with
 :data:`BOUNDS_MARGIN_M`) and with a sane covariance (:data:`MAX_STD_XY_M`,
 :data:`MAX_STD_THETA_RAD`). Even then it is an unconfirmed belief: the filter reports
-``global`` until the views confirm it (``Localizer.set_pose(..., confirmed=False)``). The
-motion since the save is not checked: the odometry board's counters are absolute and outlive
-the daemon, but the driver hands out increments only, so the daemon widens the restored
-covariance with the state's age instead (``services.daemon.restore_min_std``).
+``global`` until the views confirm it (``Localizer.set_pose(..., confirmed=False)``), with
+its covariance widened by the state's age (``services.daemon.restore_min_std``).
+
+The motion since the save: the odometry board's counters are absolute and outlive the
+daemon (:class:`drivers.interfaces.BoardCounters`), so every save carries the board's
+counters at the time of writing (:class:`SavedCounters`, filled in by :class:`StateSaver`),
+and at the next start :func:`board_motion` compares them with the board's counters then: a
+robot that moved more than :data:`BARELY_MOVED_M` or turned more than
+:data:`BARELY_TURNED_RAD` since the save has its saved pose refused. When the motion cannot
+be known the check is skipped, saying why (:attr:`BoardMotion.note`), and the other checks
+decide: a file saved without counters (an older file, or no odometry board), no counters
+from the board at the start, or a board that restarted in between
+(``drivers.odometry_protocol.wheel_travel``). The counters are the board's NET counts: a
+motion whose wheel travels cancel (forward, then back the same way) counts as none, and
+motion between the estimate's stamp and the write (up to a frame period or two) is in
+neither; the views still have to confirm the pose.
 
 The daemon writes off its loop's thread: :class:`StateSaver` is a thread that writes the
 latest :class:`SavedState` handed to it (a newer one replaces one not yet written), and
@@ -40,6 +52,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -47,6 +60,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from drivers.interfaces import BoardCounters
+from drivers.odometry_protocol import U32, arc_step, wheel_travel
 from lino_loc.atomic_file import atomic_write
 from lino_loc.pose_estimate import Estimate
 from services.messages import Covariance, Pose2D
@@ -78,6 +93,28 @@ STATE_FORMAT = "lino-loc-state"
 STATE_VERSION = 1
 
 
+class SavedCounters(BaseModel):
+    """The odometry board's absolute counters when a state was written
+    (:class:`drivers.interfaces.BoardCounters` without the driver's geometry: the driver's
+    at the next start applies)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    stamp: float = Field(ge=0.0, allow_inf_nan=False, description="host time of the sample, s since the epoch")
+    board_ms: int = Field(ge=0, lt=U32, description="the board's clock, ms")
+    left: int = Field(ge=0, lt=U32, description="raw left encoder count")
+    right: int = Field(ge=0, lt=U32, description="raw right encoder count")
+
+    @classmethod
+    def of(cls, c: BoardCounters) -> SavedCounters:
+        return cls(stamp=c.stamp, board_ms=c.board_ms, left=c.left, right=c.right)
+
+    def with_geometry(self, like: BoardCounters) -> BoardCounters:
+        """These counts with ``like``'s metres per tick and track width."""
+        return BoardCounters(self.stamp, self.board_ms, self.left, self.right,
+                             like.left_m_per_tick, like.right_m_per_tick, like.track_width)  # fmt: skip
+
+
 class SavedState(BaseModel):
     """The persisted belief summary (what the next start uses as its initial belief)."""
 
@@ -91,6 +128,10 @@ class SavedState(BaseModel):
     covariance: Covariance
     state: str = "tracking"
     map_checksum: str | None = None
+    odometry: SavedCounters | None = Field(
+        None, description="the odometry board's counters when written (absent in older files "
+        "and without a board: the motion check is skipped)",
+    )
 
     @classmethod
     def from_estimate(
@@ -183,16 +224,62 @@ MAX_STD_XY_M = 1.0
 MAX_STD_THETA_RAD = 0.8
 
 
+#: "Barely moved" since the save, by the odometry board's counters (:func:`board_motion`):
+#: the net displacement (m) and turn (rad) of the arc of the wheels' net travels. Below the
+#: sensor model's kernel widths (``lino_loc.lost_detection.VIEW_XY`` 0.35 m,
+#: ``VIEW_THETA`` 0.3 rad: poses that close are not told apart by the views) and within the
+#: restored belief's spread (``services.daemon.restore_min_std``: at least 0.1 m and 0.05 rad,
+#: growing by 0.3 m/s and 0.1 rad/s of the state's age), so the views confirm or correct the
+#: recalled pose; beyond, the saved pose is refused.
+BARELY_MOVED_M = 0.25
+BARELY_TURNED_RAD = 0.25
+
+
+@dataclass(frozen=True)
+class BoardMotion:
+    """What the odometry board says about the motion since a save: ``refusal`` (the robot
+    moved more than "barely": why the saved pose must not be reused) or None, and ``note``,
+    one line for the log and the status (the motion, or why it is unknown)."""
+
+    refusal: str | None
+    note: str
+
+
+def board_motion(state: SavedState, now: BoardCounters | None) -> BoardMotion:
+    """The motion since ``state`` was saved by the board's counters: the net wheel travels
+    (``drivers.odometry_protocol.wheel_travel``, ``now``'s geometry) as one arc
+    (``arc_step``): displacement ``hypot(dx, dy)`` and turn ``|dtheta|``, refused beyond
+    :data:`BARELY_MOVED_M` or :data:`BARELY_TURNED_RAD`. Unknown (no refusal, the note says
+    why): no counters in the file or from the board, or a board restart in between."""
+    skip = "motion since the save unknown, the odometry check is skipped: "
+    if state.odometry is None:
+        return BoardMotion(None, skip + "the saved state has no odometry counters (an older file)")
+    if now is None:
+        return BoardMotion(None, skip + "no counters from the odometry board at the start")
+    travel = wheel_travel(state.odometry.with_geometry(now), now)
+    if isinstance(travel, str):
+        return BoardMotion(None, skip + travel)
+    dx, dy, dth = arc_step(travel[0], travel[1], now.track_width)
+    moved, turned = math.hypot(dx, dy), abs(dth)
+    said = (f"the odometry board says the robot moved {moved:.2f} m and turned {turned:.2f} "
+            "rad since the save")  # fmt: skip
+    if moved > BARELY_MOVED_M or turned > BARELY_TURNED_RAD:
+        return BoardMotion(f"{said} (barely moved: <= {BARELY_MOVED_M:g} m, <= "
+                           f"{BARELY_TURNED_RAD:g} rad)", said)  # fmt: skip
+    return BoardMotion(None, said)
+
+
 @dataclass(frozen=True)
 class RestoreContext:
     """What a saved state is checked against at start: the clock (s since the epoch), the
-    loaded map's checksum (None: unknown), its bounds (x_min, x_max, y_min, y_max; m) and
-    the largest age (s)."""
+    loaded map's checksum (None: unknown), its bounds (x_min, x_max, y_min, y_max; m), the
+    largest age (s) and the odometry board's counters now (None: none came)."""
 
     now: float
     map_checksum: str | None
     bounds: tuple[float, float, float, float]
     max_age_s: float
+    odometry: BoardCounters | None = None
 
 
 def refusal(state: SavedState, ctx: RestoreContext) -> str | None:
@@ -205,7 +292,9 @@ def refusal(state: SavedState, ctx: RestoreContext) -> str | None:
       :data:`FUTURE_TOLERANCE_S`;
     - inside the map: (x, y) within the bounds widened by :data:`BOUNDS_MARGIN_M`;
     - a sane covariance: finite and positive semi-definite (already checked on loading),
-      position std <= :data:`MAX_STD_XY_M`, heading std <= :data:`MAX_STD_THETA_RAD`.
+      position std <= :data:`MAX_STD_XY_M`, heading std <= :data:`MAX_STD_THETA_RAD`;
+    - barely moved since the save by the odometry board's counters (:func:`board_motion`
+      with ``ctx.odometry``; skipped when unknown).
     """
     if state.state != "tracking":
         return f"saved while {state.state!r}, not 'tracking'"
@@ -232,19 +321,24 @@ def refusal(state: SavedState, ctx: RestoreContext) -> str | None:
         return f"position std {std_xy:.3g} m > {MAX_STD_XY_M:g} m"
     if not (math.isfinite(std_th) and std_th <= MAX_STD_THETA_RAD):
         return f"heading std {std_th:.3g} rad > {MAX_STD_THETA_RAD:g} rad"
-    return None
+    return board_motion(state, ctx.odometry).refusal
 
 
 class StateSaver(threading.Thread):
     """Writes the :class:`SavedState` handed to it (latest wins), off the caller's thread.
 
     :meth:`submit` returns at once; :meth:`write` writes in the caller's thread and returns
-    False (with :attr:`last_error`, and a warning) when the file cannot be written. The
-    thread ends after :meth:`stop`, dropping a state not yet written."""
+    False (with :attr:`last_error`, and a warning) when the file cannot be written. A state
+    without odometry counters gets the board's at the time of writing from ``counters``
+    (None, or a callable returning None: none). The thread ends after :meth:`stop`, dropping
+    a state not yet written."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(
+        self, path: Path, counters: Callable[[], BoardCounters | None] | None = None
+    ) -> None:
         super().__init__(name="state-saver", daemon=True)
         self.path = path
+        self.counters = counters
         self._cond = threading.Condition()
         self._pending: SavedState | None = None
         self._closing = False
@@ -267,6 +361,9 @@ class StateSaver(threading.Thread):
                 self.write(state)
 
     def write(self, state: SavedState) -> bool:
+        c = self.counters() if self.counters is not None and state.odometry is None else None
+        if c is not None:
+            state = state.model_copy(update={"odometry": SavedCounters.of(c)})
         try:
             save_state(self.path, state)
             self.saves += 1

@@ -77,3 +77,57 @@ def test_switching_on_builds_the_policy_in_the_loop() -> None:
     ran = []
     a.set_enabled(True, run_in_loop=lambda fn: ran.append(fn))
     assert a.info().enabled and ran == [a.ensure_policy]
+
+
+class NoGainPolicy:
+    """A policy that sees no gain anywhere (a concentrated belief): entropies rising away
+    from pan 1.0."""
+
+    def __init__(self, reason: str = "no gain") -> None:
+        import math
+
+        import numpy as np
+
+        from lino_loc.active_vision import ActionValues
+
+        self.reason = reason
+        actions = np.linspace(-2.6, 2.6, 22)
+        self.values = ActionValues(actions, 1.0 + np.abs(actions - 1.0), 1.0, 50)
+        self.last_command_time, self.last_command = -math.inf, None
+        from lino_loc.active_vision import ActiveVisionConfig
+
+        self.config = ActiveVisionConfig()
+
+    def clamp(self, pan: float) -> float:
+        return pan
+
+    def decide(self, particles, log_weights, **kw):  # noqa: ANN001, ANN003, ANN201
+        return Decision(None, self.reason, 0.5, self.values)  # type: ignore[arg-type]
+
+
+def test_an_unconfirmed_converged_belief_gets_a_confirmation_look() -> None:
+    """state global with a converged mode on a standing base, and the policy sees no gain:
+    the head turns to the least-entropy candidate at least CONFIRM_LOOK_MIN_TURN away (a
+    standing robot gets new views only so); tracking, a belief not converged, or a driving
+    base: nothing."""
+    import dataclasses
+
+    import numpy as np
+
+    from lino_loc.localizer import LocalizerConfig
+    from services.active_head import CONFIRM_LOOK_MIN_TURN
+
+    for reason in ("no gain", "stay"):
+        a, head = _active(reading=HeadReading(pan=1.0))
+        a.localizer.config = LocalizerConfig()  # type: ignore[attr-defined]
+        a.policy = NoGainPolicy(reason)  # type: ignore[assignment]
+        still = np.zeros(3)
+        assert a.step(estimate(state="tracking"), 5.0, still) is None
+        spread = dataclasses.replace(estimate(state="global"), covariance=np.diag([1.0, 1.0, 0.3]))
+        assert a.step(spread, 5.0, still) is None
+        assert a.step(estimate(state="global"), 5.0, np.array([0.05, 0.0, 0.0])) is None  # driving
+        assert a.step(estimate(state="global"), 5.0) is None  # the base's motion unknown
+        pan = a.step(estimate(state="global"), 5.0, np.array([1e-4, 0.0, 0.0]))  # encoder jitter
+        assert pan is not None and CONFIRM_LOOK_MIN_TURN <= abs(pan - 1.0) < 0.6, pan
+        assert head.commands == [(pan, 0.0)]
+        assert a.info().last_decision == "confirm" and a.policy.last_command == pan  # type: ignore[union-attr]

@@ -501,6 +501,11 @@ def test_kill_9_and_restart_resume_from_the_saved_pose(rig: Rig) -> None:
     rig.daemon.wait(10)
     saved = json.loads(rig.state.read_text())
     assert saved["state"] == "tracking"
+    # the robot drives on: the board's counters would refuse the pose; a file written before
+    # they were saved has none, and then the check is skipped (next test: with them)
+    assert saved["odometry"]["board_ms"] > 0
+    del saved["odometry"]
+    rig.state.write_text(json.dumps(saved))
     t_restart = time.time()
     rig.daemon = start_daemon(rig.cfg, rig.log)
     first = s.wait_for(lambda: s.poses_since(t_restart)[:3] if len(s.poses_since(t_restart)) >= 3 else None,
@@ -517,11 +522,40 @@ def test_kill_9_and_restart_resume_from_the_saved_pose(rig: Rig) -> None:
     # benchmarks/restart_table.py: the robot moved since the save)
     assert first[0]["state"] == "global", first[0]["state"]
     assert first[0]["seq"] < 20  # a new process (its update counter restarted)
-    assert "to be confirmed by the views" in rig.log.read_text()
+    log = rig.log.read_text()
+    assert "to be confirmed by the views" in log
+    assert "the odometry check is skipped: the saved state has no odometry counters" in log
     _wait_tracking(rig, 60)
     wrong = [(p["seq"], round(e, 2)) for p in s.poses_since(t_restart)
              if p["state"] == "tracking" and (e := s.error(p)) is not None and e > 0.5]
     assert not wrong, f"tracking poses more than 0.5 m wrong after the restart: {wrong}"
+
+
+def test_a_robot_that_moved_since_the_save_is_refused_by_the_boards_counters(rig: Rig) -> None:
+    """kill -9 while the robot drives: the board counted on while the daemon was down, and
+    its counters at the restart say the robot moved (refused, global localization), or, if
+    the robot happened to stand, how little."""
+    s = rig.stream
+    assert s is not None and rig.daemon is not None
+    _wait_tracking(rig, 60)
+    time.sleep(1.5)  # a periodic save (every second)
+    rig.daemon.send_signal(signal.SIGKILL)
+    rig.daemon.wait(10)
+    saved = json.loads(rig.state.read_text())
+    time.sleep(2.0)  # the robot drives on
+    t_restart = time.time()
+    offset = rig.log.stat().st_size
+    rig.daemon = start_daemon(rig.cfg, rig.log)
+    s.wait_for(lambda: s.poses_since(t_restart)[:1], 60, f"a pose after the restart; log:\n{_log_tail(rig)}")
+    line = next(ln for ln in rig.log.read_text()[offset:].splitlines() if "initial belief" in ln)
+    assert "the odometry board says the robot moved" in line, line
+    a, b = s.truth_at(saved["stamp"]), s.truth_at(s.poses_since(t_restart)[0]["stamp"])
+    assert a is not None and b is not None
+    if math.hypot(b[0] - a[0], b[1] - a[1]) > 1.0:
+        assert "refused" in line, line
+        status = request(rig.rep, {"cmd": "status"})["status"]["persistence"]["initial_belief"]
+        assert "refused: the odometry board says the robot moved" in status, status
+    _wait_tracking(rig, 90)
 
 
 def test_a_state_of_another_map_is_refused_at_restart(rig: Rig) -> None:

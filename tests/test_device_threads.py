@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from drivers.interfaces import (
+    BoardCounters,
     DeviceHealth,
     HeadCommand,
     HeadState,
@@ -209,10 +210,14 @@ def test_odometry_worker_fills_the_buffer() -> None:
         def health(self) -> DeviceHealth:
             return DeviceHealth(HealthState.DEGRADED, "stale")
 
+        def counters(self) -> BoardCounters:
+            return BoardCounters(time.time(), 1234, 5, 6, 1e-4, 1e-4, 0.3)
+
         def close(self) -> None:
             pass
 
     buf = OdometryBuffer()
+    assert buf.counters is None
     w = OdometryWorker(Odo, buf)
     w.start()
     try:
@@ -223,6 +228,7 @@ def test_odometry_worker_fills_the_buffer() -> None:
     finally:
         w.stop()
     np.testing.assert_allclose(buf.take_all()[0], [0.05, 0.0, 0.0], atol=1e-12)
+    assert buf.counters is not None and (buf.counters.board_ms, buf.counters.left) == (1234, 5)
 
 
 def test_head_worker_sends_latest_goal_and_records_history() -> None:

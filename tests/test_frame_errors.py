@@ -63,6 +63,9 @@ class _Camera(_Device):
 
 
 class _Odometry(_Device):
+    def counters(self) -> None:
+        return None
+
     def read(self, timeout: float | None = None) -> list[OdometryIncrement]:
         time.sleep(timeout or 0.05)
         return [OdometryIncrement(time.time(), 0.0, 0.0, 0.0, 0.05)]

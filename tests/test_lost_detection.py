@@ -3,9 +3,21 @@ per independent view."""
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from lino_loc.lost_detection import CHANCE_HIT_RATE, LostConfig, LostDetector
+import numpy as np
+import pytest
+
+from lino_loc.lost_detection import (
+    CHANCE_HIT_RATE,
+    MIN_PAN_CHANGE,
+    VIEW_THETA,
+    VIEW_XY,
+    LostConfig,
+    LostDetector,
+    camera_increment,
+    independent_views,
+)
 
 STEP = np.array([0.35, 0.0, 0.0])  # one independent view per observation
 
@@ -95,3 +107,39 @@ def test_doubt_grows_with_the_evidence_and_reaches_one_when_lost() -> None:
         seen.append(det.doubt)
     assert all(b > a for a, b in zip(seen, seen[1:], strict=False))  # each miss adds evidence
     assert seen[-2] < 1.0 < seen[-1] and det.doubt == det.score / det.config.threshold
+
+
+# --------------------------------------------------------------------- the camera's views
+
+
+def test_a_standing_robot_whose_head_pans_sees_new_views() -> None:
+    """Closed form: standing (delta 0) with a pan change dp >= MIN_PAN_CHANGE is
+    min(1, |dp| / VIEW_THETA) of a view; standing with the head still (or jittering under
+    MIN_PAN_CHANGE) is none; a moving robot counts as before, whatever the head does."""
+    zero = np.zeros(3)
+    assert independent_views(camera_increment(zero, 0.15)) == pytest.approx(0.15 / VIEW_THETA)
+    assert independent_views(camera_increment(zero, -0.25)) == pytest.approx(0.25 / VIEW_THETA)
+    assert independent_views(camera_increment(zero, 1.0)) == 1.0
+    assert independent_views(camera_increment(zero, 0.0)) == 0.0
+    assert independent_views(camera_increment(zero, 0.5 * MIN_PAN_CHANGE)) == 0.0
+    assert independent_views(camera_increment(zero, math.nan)) == 0.0  # no pan known yet
+    # a turn of 2 pi is no turn
+    assert independent_views(camera_increment(zero, 2.0 * math.pi)) == 0.0
+    step = np.array([0.1, 0.0, 0.0])
+    assert independent_views(camera_increment(step, 0.0)) == pytest.approx(0.1 / VIEW_XY)
+    assert independent_views(camera_increment(step, 0.001)) == pytest.approx(0.1 / VIEW_XY)
+    assert independent_views(camera_increment(step, 0.06)) == pytest.approx(
+        0.1 / VIEW_XY + 0.06 / VIEW_THETA
+    )
+    # the base turns left, the head pans right as much: the camera looks where it looked
+    assert independent_views(camera_increment([0.0, 0.0, 0.2], -0.2)) == 0.0
+    np.testing.assert_array_equal(camera_increment(step, 0.3), [0.1, 0.0, 0.3])
+
+
+def test_a_panning_standing_robot_confirms_a_belief_a_still_one_does_not() -> None:
+    panning, still = LostDetector(), LostDetector()
+    pans = [0.0, 0.25, 0.5, 0.25, 0.0, -0.25]
+    for k in range(1, len(pans)):
+        panning.update(3.0, camera_increment(np.zeros(3), pans[k] - pans[k - 1]))
+        still.update(3.0, camera_increment(np.zeros(3), 0.0))
+    assert panning.confirmed and not still.confirmed

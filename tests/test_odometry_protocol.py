@@ -159,3 +159,38 @@ def test_scalar_arc_step_equals_vectorized() -> None:
 
 def test_ticks_to_metres() -> None:
     assert ticks_to_metres(4096, 0.05, 4096) == pytest.approx(2 * math.pi * 0.05)
+
+
+def _counters(stamp: float, board_ms: int, left: int, right: int):
+    from drivers.interfaces import BoardCounters
+
+    return BoardCounters(stamp, board_ms % U32, left % U32, right % U32, 1e-4, -1e-4, 0.3)
+
+
+def test_wheel_travel_between_two_readings_of_one_board_run() -> None:
+    from drivers.odometry_protocol import CLOCK_TOLERANCE_S, wheel_travel
+
+    a = _counters(1000.0, 5_000, 100, 200)
+    # 20 s later by both clocks, the counters wrapped forward / went backwards through 0
+    b = _counters(1020.0, 25_000, U32 - 50, 10_200)
+    dl, dr = wheel_travel(a, b)
+    assert dl == pytest.approx(-150 * 1e-4) and dr == pytest.approx(-10_000 * 1e-4)
+    # the board's clock wraps too (every 49.7 days)
+    c = _counters(1020.0, U32 - 1_000 + 20_000, 100, 200)
+    assert wheel_travel(_counters(1000.0, U32 - 1_000, 100, 200), c) == (0.0, 0.0)
+    # latency between the two stamps within the tolerance
+    assert wheel_travel(a, _counters(1021.5, 25_000, 100, 200)) == (0.0, 0.0)
+    assert CLOCK_TOLERANCE_S == 2.0
+
+
+def test_wheel_travel_names_a_board_restart() -> None:
+    from drivers.odometry_protocol import wheel_travel
+
+    a = _counters(1000.0, 60_000, 100, 200)
+    went_back = wheel_travel(a, _counters(1010.0, 4_000, 0, 0))
+    assert isinstance(went_back, str) and "went back" in went_back and "restarted" in went_back
+    # restarted after the save and up longer than the board was before: its clock lags
+    lag = wheel_travel(_counters(1000.0, 1_000, 100, 200), _counters(1030.0, 5_000, 0, 0))
+    assert isinstance(lag, str) and "advanced 4.0 s while the host's advanced 30.0 s" in lag
+    backwards = wheel_travel(a, _counters(990.0, 60_000, 100, 200))
+    assert isinstance(backwards, str) and "out of order" in backwards

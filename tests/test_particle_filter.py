@@ -431,6 +431,33 @@ def test_a_wrong_recalled_pose_is_never_reported_tracking_while_wrong() -> None:
         assert states[-1] == "tracking" and errors[-1] < 0.5, (seed, states, errors[-5:])
 
 
+def _standing_recalled(pans, updates=40, seed=5):
+    """A right recalled pose on a robot that stands while its head takes the pans in turn;
+    the states per update."""
+    model, f = _synthetic_model()
+    pf = _filter(n=800, seed=seed)
+    truth = np.array([2.0, 2.0, 0.3])
+    pf.set_pose(truth, np.diag([0.01, 0.01, 0.005]), confirmed=False)
+    rng = np.random.default_rng(seed)
+    states = []
+    for k in range(updates):
+        pan = pans[k % len(pans)]
+        y = f(camera_pose(truth, pan))[0] + rng.normal(0, 0.05, 8)
+        pf.update(np.zeros(3), pan, model.observe(y))
+        states.append(pf.estimate().state)
+    return states
+
+
+def test_a_standing_robot_is_confirmed_by_panning_its_head() -> None:
+    """A recalled pose on a standing robot: ``tracking`` once the head's pans have shown
+    enough new views; with the head still it stays ``global`` (the same view again is no
+    evidence)."""
+    panning = _standing_recalled([0.0, 0.3, 0.6, 0.3])
+    assert "tracking" in panning[:20], panning
+    still = _standing_recalled([0.4])
+    assert set(still) == {"global"}, still
+
+
 def test_an_operators_pose_is_still_trusted_at_once() -> None:
     pf = _filter(n=500)
     pf.set_pose([2.0, 1.0, 0.0], np.diag([0.01, 0.01, 0.01]), confirmed=True)

@@ -279,3 +279,81 @@ def test_a_restored_spread_grows_with_the_states_age() -> None:
     a, b = restore_min_std(1.0), restore_min_std(2.0)
     assert np.all(b >= a) and b[0] > a[0]
     assert restore_min_std(2.0)[0] > 0.5  # past the filter's converged_std_xy: re-converge first
+
+
+# ----------------------------------------------------------------------- the board's counters
+
+
+def _board(stamp: float, board_ms: int, left: int, right: int):
+    from drivers.interfaces import BoardCounters
+
+    m = 2 * math.pi * 0.05 / 4096  # the default wheel: 7.7e-5 m per tick
+    return BoardCounters(stamp, board_ms, left, right, m, m, 0.30)
+
+
+def _with_counters(board_ms: int = 60_000, left: int = 1_000, right: int = 2_000) -> SavedState:
+    from services.persistence import SavedCounters
+
+    return _saved(odometry=SavedCounters(stamp=_NOW - 5.0, board_ms=board_ms, left=left, right=right))
+
+
+def test_the_board_says_the_robot_barely_moved_or_moved() -> None:
+    from services.persistence import BARELY_MOVED_M, BARELY_TURNED_RAD, board_motion
+
+    m = 2 * math.pi * 0.05 / 4096
+    saved = _with_counters()
+    still = _board(_NOW, 65_000, 1_000 + 3, 2_000 - 2)  # 5 s later by both clocks: encoder jitter
+    assert refusal(saved, _ctx(odometry=still)) is None
+    assert "moved 0.00 m" in board_motion(saved, still).note
+    ticks = round(0.2 / m)  # 0.2 m straight: barely
+    assert refusal(saved, _ctx(odometry=_board(_NOW, 65_000, 1_000 + ticks, 2_000 + ticks))) is None
+    ticks = round(1.0 / m)  # 1 m straight
+    why = refusal(saved, _ctx(odometry=_board(_NOW, 65_000, 1_000 + ticks, 2_000 + ticks)))
+    assert why is not None and "the odometry board says the robot moved 1.00 m" in why, why
+    assert f"<= {BARELY_MOVED_M:g} m" in why and "\n" not in why
+    ticks = round(0.5 * 0.30 * 0.5 / m)  # turned 0.5 rad on the spot, not moved
+    why = refusal(saved, _ctx(odometry=_board(_NOW, 65_000, 1_000 - ticks, 2_000 + ticks)))
+    assert why is not None and "turned 0.50 rad" in why and f"{BARELY_TURNED_RAD:g} rad" in why, why
+    # counters that wrapped meanwhile
+    wrapped = _with_counters(left=(1 << 32) - 10, right=(1 << 32) - 10)
+    assert refusal(wrapped, _ctx(odometry=_board(_NOW, 65_000, 5, 5))) is None
+
+
+def test_an_unknown_motion_falls_back_to_the_other_checks_and_says_so() -> None:
+    from services.persistence import board_motion
+
+    saved = _with_counters()
+    rebooted = _board(_NOW, 4_000, 0, 0)  # the board's clock went back: it restarted
+    assert refusal(saved, _ctx(odometry=rebooted)) is None
+    note = board_motion(saved, rebooted).note
+    assert "unknown" in note and "board restarted" in note and "skipped" in note, note
+    # ... and the other checks still decide
+    assert "another map" in (refusal(saved.model_copy(update={"map_checksum": "x"}),
+                                     _ctx(odometry=rebooted)) or "")
+    old = _saved()  # a file written before the counters were saved
+    assert old.odometry is None and refusal(old, _ctx(odometry=rebooted)) is None
+    assert "no odometry counters (an older file)" in board_motion(old, rebooted).note
+    assert "no counters from the odometry board" in board_motion(saved, None).note
+    assert refusal(saved, _ctx()) is None
+
+
+def test_an_older_file_without_counters_loads(tmp_path: Path) -> None:
+    path = tmp_path / "state.json"
+    data = json.loads(_state().model_dump_json())
+    del data["odometry"]
+    path.write_text(json.dumps(data))
+    loaded = load_state(path)
+    assert loaded is not None and loaded.odometry is None
+
+
+def test_the_saver_writes_the_boards_counters_with_the_state(tmp_path: Path) -> None:
+    from services.persistence import StateSaver
+
+    path = tmp_path / "state.json"
+    saver = StateSaver(path, lambda: _board(_NOW, 123_456, 7, (1 << 32) - 1))
+    assert saver.write(_state())
+    saved = load_state(path)
+    assert saved is not None and saved.odometry is not None
+    assert (saved.odometry.board_ms, saved.odometry.left, saved.odometry.right) == (123_456, 7, (1 << 32) - 1)
+    assert StateSaver(path, lambda: None).write(_state())
+    assert load_state(path).odometry is None  # type: ignore[union-attr]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from drivers.interfaces import HealthState, Odometry
-from drivers.odometry_protocol import U32
+from drivers.odometry_protocol import U32, wheel_travel
 from drivers.serial_odometry import NOISE_HOLD_S, OdometryConfig, SerialOdometry
 from drivers.sim.odometry_emulator import OdometryBoardEmulator
 from lino_loc.poses import compose
@@ -158,6 +158,46 @@ def test_counter_wrap_forward_and_backward(run: Run) -> None:
     check_arc(run, c0)
     assert run.pose[0] < -0.1
     assert run.odo.health().counters["resets"] == 2
+
+
+def _counters_of(odo: SerialOdometry, timeout: float = 2.0):
+    deadline = time.monotonic() + timeout
+    while odo.counters() is None and time.monotonic() < deadline:
+        odo.read(timeout=0.05)
+    c = odo.counters()
+    assert c is not None, "no counters"
+    return c
+
+
+def test_absolute_counters_outlive_the_driver_and_show_a_board_restart(run: Run) -> None:
+    """The counters a driver read before it closed (a daemon killed) and those a new driver
+    reads (the next daemon) give the wheels' net travel in between, the motion included while
+    no driver ran; after a board restart, the reason instead."""
+    run.settle()
+    before = _counters_of(run.odo)
+    assert before.left_m_per_tick == pytest.approx(M_PER_TICK) and before.track_width == B
+    assert abs(before.stamp - time.time()) < 1.0
+    run.odo.close()  # the daemon is down; the board keeps counting
+    run.emu.set_wheel_speeds(0.5, 0.3)
+    time.sleep(0.4)
+    run.emu.set_wheel_speeds(0.0, 0.0)
+    run.odo = SerialOdometry(OdometryConfig(port=run.link, wheel_radius=R, ticks_per_rev=N, track_width=B))
+    run.odo.open()
+    after = _counters_of(run.odo)
+    travel = wheel_travel(before, after)
+    assert not isinstance(travel, str), travel
+    assert travel[0] == pytest.approx((after.left - before.left) * M_PER_TICK)
+    assert 0.1 < travel[0] < 0.3 and 0.05 < travel[1] < 0.2, travel
+    assert wheel_travel(after, after) == (0.0, 0.0)
+    run.emu.reboot()
+    time.sleep(0.2)
+    rebooted = _counters_of(run.odo)
+    deadline = time.monotonic() + 2.0
+    while rebooted.board_ms >= after.board_ms and time.monotonic() < deadline:
+        run.odo.read(timeout=0.05)
+        rebooted = _counters_of(run.odo)
+    why = wheel_travel(before, rebooted)
+    assert isinstance(why, str) and "board restarted" in why, why
 
 
 def test_garbage_dropped_corrupt_and_split_lines(run: Run) -> None:

@@ -3,7 +3,8 @@
 Streams ``$ODO`` lines (``drivers.odometry_protocol``) at ``rate_hz`` from encoder counters
 driven by wheel speeds that the caller sets (m/s or ticks/s), in real time, from a thread. The
 counters are unsigned 32-bit and wrap; ``set_counters`` starts them anywhere (e.g. just below
-2^32 to exercise the wrap).
+2^32 to exercise the wrap), ``reboot`` restarts them, the sequence and the clock from 0 as
+a board restart does.
 
 Fault injection (thread-safe):
 - ``inject_garbage(n)``: n random bytes before the next line;
@@ -125,6 +126,14 @@ class OdometryBoardEmulator:
             self._left, self._right = float(left), float(right)
             if t_ms is not None:
                 self._t_ms = float(t_ms)
+
+    def reboot(self) -> None:
+        """A board restart: the sequence, the clock and the counters start again from 0 (the
+        wheel speeds stay)."""
+        with self._lock:
+            self._left = self._right = 0.0
+            self._t_ms = 0.0
+            self._seq = 0
 
     def counters(self) -> tuple[int, int]:
         """Current (left, right) raw counters, unwrapped (may exceed 2^32)."""
