@@ -99,6 +99,23 @@ def independent_views(
     return min(1.0, math.hypot(float(d[0]), float(d[1])) / view_xy + abs(float(d[2])) / view_theta)
 
 
+#: A base that moved less than this share of an independent view since the last frame stands
+#: (:func:`viewed_increment`; 3.5 mm or 3 mrad, where encoder jitter of a tick or two is
+#: 0.1 mm); a driving base makes new views itself.
+STANDING_VIEWS = 0.01
+
+
+def viewed_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:
+    """The increment whose views the lost test counts: the camera's
+    (:func:`camera_increment`) while the base stands (less than :data:`STANDING_VIEWS` of a
+    view, :func:`independent_views`), the odometry's ``delta`` while it drives. The head's
+    turns give a standing robot its new views; while driving, the base's motion alone is the
+    count, as before pans were counted, so that a driving robot's search is not confirmed
+    sooner by the head's turns."""
+    d = np.array(delta, dtype=np.float64).reshape(3)
+    return camera_increment(d, pan_change) if independent_views(d) < STANDING_VIEWS else d
+
+
 def camera_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:
     """The camera's pose increment (dx, dy, dtheta + dpan) for the odometry increment
     ``delta`` = (dx, dy, dtheta) (robot frame) and the head's pan change ``pan_change`` (rad,

@@ -71,8 +71,8 @@ from lino_loc.lost_detection import (
     HIT_NATS,
     LostConfig,
     LostDetector,
-    camera_increment,
     independent_views,
+    viewed_increment,
 )
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pose_estimate import (
@@ -426,7 +426,7 @@ class AuxiliaryParticleFilter:
         loglik, ll = self._predict_and_weight(d, pan, mixture)
         self._watch_appearance(mixture.novelty, d)
         floor = outlier_floor(mixture)
-        self._test_lost(ll, floor, camera_increment(d, pan_change))
+        self._test_lost(ll, floor, viewed_increment(d, pan_change))
         self._recover(ll, floor, d, loglik, mixture, pan)
         self._resample_if_degenerate()
         self._update_state()
@@ -470,9 +470,9 @@ class AuxiliaryParticleFilter:
     def _test_lost(self, ll: float, floor: float, d: FloatArray) -> None:
         """Step 3: the lost test on the likelihood's excess over the outlier floor; the hit
         rate is learnt from trusted beliefs (tracking, or lost: slowly), not from a search.
-        ``d`` is the CAMERA's increment since the last observation (``lino_loc.lost_detection.
-        camera_increment``: the odometry's with the head's pan change), so a standing robot
-        whose head pans sees new views. For a recalled belief not yet confirmed, the run of
+        ``d`` is the increment whose views count (``lino_loc.lost_detection.
+        viewed_increment``: the camera's, with the head's pan change, on a standing base; the
+        odometry's on a driving one), so a standing robot whose head pans sees new views. For a recalled belief not yet confirmed, the run of
         hit views grows by this frame's independent views on a hit and restarts on a miss (a
         frame where the camera did not move: neither)."""
         excess = ll - floor if math.isfinite(floor) else ll

@@ -52,7 +52,7 @@ from lino_loc.active_vision import (
 )
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
-from lino_loc.lost_detection import VIEW_THETA, independent_views
+from lino_loc.lost_detection import STANDING_VIEWS, VIEW_THETA, independent_views
 from lino_loc.pose_estimate import Estimate
 from services.messages import ActiveVisionInfo
 
@@ -63,10 +63,6 @@ _METHOD = ActiveVisionConfig()
 #: rad: the smallest turn of a confirmation look: one independent view's worth of camera turn
 #: (``lino_loc.lost_detection.VIEW_THETA``), so each look counts fully for the lost test.
 CONFIRM_LOOK_MIN_TURN = VIEW_THETA
-#: The base is standing when its odometry since the previous frame is less than this share of
-#: an independent view (``lino_loc.lost_detection.independent_views``: 3.5 mm or 3 mrad;
-#: encoder jitter of a tick or two is 0.1 mm).
-STANDING_VIEWS = 0.01
 
 #: The method's settings the service does not expose: the policy uses the defaults of
 #: lino_loc.active_vision.ActiveVisionConfig (22 candidate pans and 150 particles as in the

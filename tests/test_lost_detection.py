@@ -136,6 +136,19 @@ def test_a_standing_robot_whose_head_pans_sees_new_views() -> None:
     np.testing.assert_array_equal(camera_increment(step, 0.3), [0.1, 0.0, 0.3])
 
 
+def test_the_head_counts_for_a_standing_base_only() -> None:
+    """viewed_increment: standing (under STANDING_VIEWS of a view), the camera's increment;
+    driving, the odometry's alone, whatever the head does."""
+    from lino_loc.lost_detection import STANDING_VIEWS, viewed_increment
+
+    np.testing.assert_array_equal(viewed_increment(np.zeros(3), 0.25), [0.0, 0.0, 0.25])
+    creeping = np.array([0.5 * STANDING_VIEWS * VIEW_XY, 0.0, 0.0])  # still "standing"
+    np.testing.assert_allclose(viewed_increment(creeping, 0.25), creeping + [0.0, 0.0, 0.25])
+    driving = np.array([0.1, 0.0, 0.02])
+    np.testing.assert_array_equal(viewed_increment(driving, 0.25), driving)
+    np.testing.assert_array_equal(viewed_increment(driving, -0.2), driving)
+
+
 def test_a_panning_standing_robot_confirms_a_belief_a_still_one_does_not() -> None:
     panning, still = LostDetector(), LostDetector()
     pans = [0.0, 0.25, 0.5, 0.25, 0.0, -0.25]
