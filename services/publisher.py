@@ -214,7 +214,7 @@ class Publisher:
         """The subscribers' counters for the status."""
         with self._lock:
             if not self._closed:
-                self.guard.enforce()  # the monitor's events: the connections open now
+                self.guard.read_events()  # the connections open now
             return PosePortInfo(
                 subscribers=self.guard.subscribers,
                 subscriptions=self.guard.distinct,

@@ -93,33 +93,23 @@ HANDSHAKE_FAILED = (
 _EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED | HANDSHAKE_FAILED
 
 
-def _libc_getsockopt() -> Any:
-    """libc's ``getsockopt(2)`` (ctypes), None where it is not available."""
+def _libc(name: str, argtypes: list[Any], restype: Any) -> Any:
+    """The C library's function ``name`` (ctypes), None where it has none (``malloc_trim``
+    is glibc's: not on musl or macOS)."""
     try:
-        fn = ctypes.CDLL(None, use_errno=True).getsockopt
+        fn = getattr(ctypes.CDLL(None, use_errno=True), name)
     except (OSError, AttributeError):
         return None
-    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_void_p,
-                   ctypes.POINTER(ctypes.c_uint32)]
-    fn.restype = ctypes.c_int
+    fn.argtypes, fn.restype = argtypes, restype
     return fn
 
 
-_GETSOCKOPT = _libc_getsockopt()
-
-
-def _libc_malloc_trim() -> Any:
-    """glibc's ``malloc_trim(3)`` (ctypes), None where it is not available (musl, macOS)."""
-    try:
-        fn = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes = [ctypes.c_size_t]
-    fn.restype = ctypes.c_int
-    return fn
-
-
-_MALLOC_TRIM = _libc_malloc_trim()
+_GETSOCKOPT = _libc(
+    "getsockopt",
+    [ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(ctypes.c_uint32)],
+    ctypes.c_int,
+)
+_MALLOC_TRIM = _libc("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
 _TCP_INFO = getattr(socket, "TCP_INFO", None)
 
 
@@ -158,7 +148,7 @@ class SubscriptionGuard:
         self._monitor = sock.get_monitor_socket(_EVENTS)
         self._accepted: dict[int, float] = {}  # fd -> monotonic time accepted
         self._closing: dict[int, float] = {}  # fd shut by the guard -> when
-        self._evicting: dict[int, int] = {}  # fds ended for the table, not yet dropped -> bytes
+        self._evicting: set[int] = set()  # fds ended for the table, not yet dropped by libzmq
         self._warned = -1  # evictions at the last warning (-1: none yet)
         self._tokens = float(MAX_EVICTIONS_PER_S)  # token bucket of evictions
         self._beyond_logged = False
@@ -196,6 +186,23 @@ class SubscriptionGuard:
         """Whether the table is past one of its caps."""
         return self.distinct > self.max_distinct or self.distinct_bytes > self.max_bytes
 
+    def read_events(self) -> None:
+        """Read the monitor's events: connections accepted and dropped, handshakes refused
+        (what :attr:`subscribers` and :attr:`refused_handshakes` count)."""
+        while True:
+            try:
+                event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK))
+            except zmq.ZMQError:
+                return
+            if event["event"] & HANDSHAKE_FAILED:
+                self.refused_handshakes += 1  # its value is an error number, not a descriptor
+                continue
+            fd = int(event["value"])
+            if event["event"] != zmq.EVENT_ACCEPTED:
+                self._forget(fd)
+                continue
+            self._accepted[fd] = time.monotonic()
+
     def enforce(self, backlog: bool = False) -> None:
         """Read the monitor's events; over a cap, end the connection that sent the most, one
         at a time (the next once libzmq has dropped it) and at most
@@ -203,7 +210,7 @@ class SubscriptionGuard:
         (``backlog``: more are waiting to be read) or the table is past
         :data:`EVICTION_MAX_FACTOR` times a cap, when an eviction would cost more than the
         table (module docstring)."""
-        self._read_events()
+        self.read_events()
         now = time.monotonic()
         for fd in [fd for fd, t in self._closing.items() if now - t > EVICTION_WAIT_S]:
             self._forget(fd)  # its event was lost: do not wait for ever
@@ -223,9 +230,9 @@ class SubscriptionGuard:
         self._refilled = now
         if self._tokens < 1.0:
             return
-        for sent, fd in self._victims():
+        for fd in self._victims():
             if self._shut(fd):
-                self._evicting[fd] = max(sent, 0)
+                self._evicting.add(fd)
                 self._tokens -= 1.0
                 self.evicted += 1
                 break
@@ -247,25 +254,11 @@ class SubscriptionGuard:
         self._monitor.close(linger=0)
 
     # ---------------------------------------------------------------------------------
-    def _read_events(self) -> None:
-        while True:
-            try:
-                event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK))
-            except zmq.ZMQError:
-                return
-            if event["event"] & HANDSHAKE_FAILED:
-                self.refused_handshakes += 1  # its value is an error number, not a descriptor
-                continue
-            fd = int(event["value"])
-            if event["event"] != zmq.EVENT_ACCEPTED:
-                self._forget(fd)
-                continue
-            self._accepted[fd] = time.monotonic()
-
     def _forget(self, fd: int) -> None:
         self._accepted.pop(fd, None)
         self._closing.pop(fd, None)
-        if self._evicting.pop(fd, None) is not None:
+        if fd in self._evicting:
+            self._evicting.discard(fd)
             self._trim()
 
     def _trim(self) -> None:
@@ -278,15 +271,15 @@ class SubscriptionGuard:
         self._trimmed = now
         _MALLOC_TRIM(0)
 
-    def _victims(self) -> list[tuple[int, int]]:
-        """(bytes received or -1 where unknown, fd) of the open connections, the one that sent
-        the most first (among unknowns, the newest first)."""
+    def _victims(self) -> list[int]:
+        """The open connections, the one that sent the most first (where the kernel cannot
+        say, the newest first)."""
         ranked: list[tuple[int, float, int]] = []
         for fd, accepted in self._accepted.items():
             if fd not in self._closing:
                 sent = bytes_received(fd)
                 ranked.append((-1 if sent is None else sent, accepted, fd))
-        return [(sent, fd) for sent, _, fd in sorted(ranked, reverse=True)]
+        return [fd for _, _, fd in sorted(ranked, reverse=True)]
 
     def _shut(self, fd: int) -> bool:
         """``shutdown(2)`` the connection ``fd`` if it is one of the pose port's; True if done."""
