@@ -106,6 +106,15 @@ def test_a_subscriber_that_never_reads_does_not_block_or_starve_others() -> None
         ctx.term()
 
 
+def _pose_subscriber(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
+    """A SUB socket on ``endpoint`` subscribed to ``pose`` (no linger)."""
+    s = ctx.socket(zmq.SUB)
+    s.setsockopt(zmq.LINGER, 0)
+    s.setsockopt(zmq.SUBSCRIBE, b"pose")
+    s.connect(endpoint)
+    return s
+
+
 def _until(pred, what: str, timeout: float = 5.0) -> None:  # noqa: ANN001
     deadline = time.monotonic() + timeout
     while not pred():
@@ -243,10 +252,7 @@ def test_a_subscriber_past_the_cap_is_evicted_and_the_memory_stays_bounded() -> 
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
     endpoint = pub.last_endpoint
-    honest = ctx.socket(zmq.SUB)
-    honest.setsockopt(zmq.LINGER, 0)
-    honest.setsockopt(zmq.SUBSCRIBE, b"pose")
-    honest.connect(endpoint)
+    honest = _pose_subscriber(ctx, endpoint)
     _until(lambda: pub.wanted("pose"), "the honest subscriber")
     before = _rss_mb()
     hostile = subprocess.Popen([sys.executable, "-c", HOSTILE_SUBSCRIBER, endpoint, "600"])
@@ -393,10 +399,7 @@ def test_a_200_mb_frame_from_a_subscriber_is_dropped_and_the_others_keep_their_s
     ctx = zmq.Context()
     pub = Publisher(ctx, "tcp://127.0.0.1:*", sndhwm=10)
     endpoint = pub.last_endpoint
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.SUBSCRIBE, b"pose")
-    sub.connect(endpoint)
+    sub = _pose_subscriber(ctx, endpoint)
     try:
         before = _rss_mb()
         for _ in range(3):
