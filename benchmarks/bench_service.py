@@ -106,6 +106,8 @@ enabled = {"true" if args.active_vision else "false"}
 [endpoints]
 pub = "{pub}"
 rep = "{rep}"
+[endpoints.relay]
+enabled = {"false" if getattr(args, "no_relay", False) else "true"}
 [persistence]
 state_file = "{tmp / 'state.json'}"
 """
@@ -116,6 +118,7 @@ class _Collector(threading.Thread):
         super().__init__(daemon=True)
         self.endpoint = endpoint
         self.poses: list[tuple[float, float, float]] = []  # (rx, stamp, latency_ms)
+        self.seqs: list[int] = []  # the update number of each pose received
         self.statuses: list[tuple[float, dict[str, Any]]] = []
         self.stop_event = threading.Event()
 
@@ -133,6 +136,7 @@ class _Collector(threading.Thread):
             m = json.loads(payload)
             if topic == b"pose":
                 self.poses.append((rx, m["stamp"], m.get("latency_ms") or float("nan")))
+                self.seqs.append(int(m["seq"]))
             elif topic == b"status":
                 self.statuses.append((rx, m))
         s.close(0)

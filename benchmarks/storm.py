@@ -18,10 +18,13 @@ limit (``services.control.CONTROL_MAX_FRAME_BYTES``): the daemon drops its conne
 so it gets no reply by design and is counted as ``dropped_oversize`` (0.2 s wait). It prints one
 JSON object: the daemon's exit status (None: still running, i.e. no crash), the pose rate per
 one-second window (the minimum over the storm) by the poses' stamps (what the daemon
-published; a pose is stamped with its frame's time) and by their arrival at this process's
+published, counted by the poses' update numbers so that poses lost on the way count; a pose
+is stamped with its frame's time) and by their arrival at this process's
 subscriber (what a client received: this process also runs the storm, so it competes for
 the CPU), the daemon's resident memory (VmRSS) at the
-start and its maximum, the reply latency (median, p99, maximum, per kind), the replies that
+start and its maximum, the pose relay's (services/pose_relay.py: the process that owns the
+pose port, which the daemon starts again when it passes its limit; ``--no-relay`` has the
+daemon bind the port itself) and its restarts, the reply latency (median, p99, maximum, per kind), the replies that
 were errors and the requests that got no reply.
 Loopback only; the number of operations and the time are bounded.
 
@@ -30,6 +33,7 @@ Usage::
     python benchmarks/storm.py --requests 10000
     python benchmarks/storm.py --requests 10000 --repeat 3       # and a summary line
     python benchmarks/storm.py --requests 560 --only subscribe   # a burst of subscribers
+    python benchmarks/storm.py --requests 560 --only subscribe --no-relay
 """
 
 from __future__ import annotations
@@ -157,11 +161,30 @@ def subscribe_storm(ctx: zmq.Context[Any], endpoint: str, rng: np.random.Generat
     subs.append(s)
 
 
+def relay_pid(daemon: int) -> int | None:
+    """The pose relay among the daemon's children (None: none running)."""
+    for task in Path(f"/proc/{daemon}/task").glob("*/children"):
+        try:
+            children = task.read_text().split()
+        except OSError:
+            continue
+        for c in children:
+            try:
+                if b"services.pose_relay" in Path(f"/proc/{c}/cmdline").read_bytes():
+                    return int(c)
+            except OSError:
+                continue
+    return None
+
+
 class MemorySampler(threading.Thread):
+    """The daemon's resident memory, and its relay's (when it has one), every ``period``."""
+
     def __init__(self, pid: int, period: float = 0.5) -> None:
         super().__init__(daemon=True)
         self.pid, self.period = pid, period
         self.samples: list[tuple[float, float]] = []
+        self.relay_samples: list[tuple[float, float]] = []
         self.stop_event = threading.Event()
 
     def run(self) -> None:
@@ -170,6 +193,12 @@ class MemorySampler(threading.Thread):
                 self.samples.append((time.time(), _mem_mb(self.pid)[0]))
             except OSError:
                 return
+            relay = relay_pid(self.pid)
+            if relay is not None:
+                try:
+                    self.relay_samples.append((time.time(), _mem_mb(relay)[0]))
+                except OSError:
+                    pass
 
 
 def storm(args: argparse.Namespace, rep: str, pub: str) -> dict[str, Any]:
@@ -253,6 +282,19 @@ def worst_window(stamps: list[float], timeline: list[tuple[float, str]], t0: flo
     return {"start_s": round(float(lo - t0), 1), "poses": int(counts[i]), "ops_then_and_before": ops}
 
 
+def produced_stamps(seqs: list[int], stamps: list[float]) -> list[float]:
+    """The stamps of every update the daemon numbered, received or not: a pose's ``seq``
+    counts the updates, so the ones between two received poses were made (and lost on the
+    way: the relay's queue, a relay restart) at stamps interpolated between theirs."""
+    if not seqs:
+        return []
+    s, t = np.asarray(seqs, float), np.asarray(stamps, float)
+    order = np.argsort(s, kind="stable")
+    s, t = s[order], t[order]
+    every = np.arange(s[0], s[-1] + 1.0)
+    return [float(v) for v in np.interp(every, s, t)]
+
+
 def final_status(rep: str) -> dict[str, Any]:
     """The daemon's ``status`` reply's status ({} when it does not answer within 5 s)."""
     ctx = zmq.Context()
@@ -281,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--map-cache", default="~/.cache/lino-loc/maps")
     p.add_argument("--virtual-headings", type=int, default=5)
     p.add_argument("--start-timeout", type=float, default=900.0)
+    p.add_argument("--no-relay", action="store_true",
+                   help="the daemon binds the pose port itself ([endpoints.relay] enabled = false)")
     p.add_argument("--repeat", type=int, default=1,
                    help="run the storm this many times (a fresh daemon each); then a summary line")
     args = p.parse_args(argv)
@@ -308,6 +352,8 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "pose_rate_mean_hz": spread([r["pose_rate_hz"]["mean"] for r in runs]),
         "pose_rate_min_1s": spread([r["pose_rate_hz"]["min_1s"] for r in runs]),
         "rss_growth_mb": spread([r["rss_mb"]["growth"] for r in runs]),
+        "relay_rss_max_mb": spread([(r["relay_rss_mb"] or {}).get("max", 0.0) for r in runs]),
+        "relay_restarts": [((r["status_pose_port_after"] or {}).get("relay_restarts")) for r in runs],
         "reply_p99_ms": spread([r["reply_latency_all"]["p99_ms"] or 0.0 for r in runs]),
         "reply_max_ms": spread([r["reply_latency_all"]["max_ms"] or 0.0 for r in runs]),
         "load_avg_1m": [r["machine"]["load_avg_1m"] for r in runs],
@@ -338,6 +384,8 @@ def one_storm(args: argparse.Namespace) -> dict[str, Any]:
                 time.sleep(0.2)
             time.sleep(args.warmup)
             rss0 = _mem_mb(proc.pid)[0]
+            relay0 = relay_pid(proc.pid)
+            relay_rss0 = _mem_mb(relay0)[0] if relay0 is not None else None
             mem.start()
             t0 = time.time()
             result = storm(args, rep, pub)
@@ -363,9 +411,10 @@ def one_storm(args: argparse.Namespace) -> dict[str, Any]:
         windows = np.histogram(a, bins=bins)[0] if a.size and bins.size > 1 else np.zeros(1)
         return round(float(a.size / (t1 - t0)), 2), int(windows.min())
 
-    published = per_second([stamp for _, stamp, _ in col.poses])
+    published = per_second(produced_stamps(col.seqs, [stamp for _, stamp, _ in col.poses]))
     received = per_second([r for r, _, _ in col.poses])
-    worst = worst_window([stamp for _, stamp, _ in col.poses], result.pop("timeline"), t0, t1)
+    worst = worst_window(produced_stamps(col.seqs, [stamp for _, stamp, _ in col.poses]),
+                         result.pop("timeline"), t0, t1)
     peak = max((m for _, m in mem.samples), default=rss0)
     out = {
         "benchmark": "storm",
@@ -376,6 +425,10 @@ def one_storm(args: argparse.Namespace) -> dict[str, Any]:
         "received_rate_hz": {"mean": received[0], "min_1s": received[1]},
         "worst_second": worst,
         "rss_mb": {"start": round(rss0, 1), "max": round(peak, 1), "growth": round(peak - rss0, 1)},
+        "relay_rss_mb": None if relay_rss0 is None else {
+            "start": round(relay_rss0, 1),
+            "max": round(max((m for _, m in mem.relay_samples), default=relay_rss0), 1),
+        },
         **result,
         "status_pose_port_after": pose_port,
         "log_tail": tail if exit_status is not None else None,

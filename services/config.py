@@ -58,6 +58,7 @@ from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
 from services.curve_auth import CurveConfig, curve_problem
 from services.persistence import PersistenceConfig
 from services.publisher import PublishConfig
+from services.relay_publisher import RelayConfig
 
 ENV_PREFIX = "LINO_LOC__"
 ENV_DELIMITER = "__"
@@ -213,6 +214,7 @@ class EndpointsConfig(_Section):
         100, ge=1, description="PUB high-water mark: messages queued per slow subscriber, then dropped"
     )
     curve: CurveConfig = Field(default_factory=CurveConfig)
+    relay: RelayConfig = Field(default_factory=RelayConfig)
 
     @field_validator("pub", "rep")
     @classmethod

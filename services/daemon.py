@@ -101,7 +101,7 @@ from services.persistence import (
     load_state,
     refusal,
 )
-from services.publisher import PosePublisher, Publisher, RateLimiter
+from services.publisher import AnyPublisher, PosePublisher, RateLimiter, open_publisher
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
 from services.truth_relay import TruthRelay
 
@@ -265,7 +265,7 @@ class Daemon:
             cfg.active_vision, (head.pan_min, head.pan_max), self.localizer, self.heads, head_worker
         )
         self.saver = StateSaver(cfg.persistence.state_file, lambda: self.odometry.counters)
-        self.publisher: Publisher | None = None
+        self.publisher: AnyPublisher | None = None
         self.poses: PosePublisher | None = None
         self.control: ControlServer | None = None
         self.truth: TruthRelay | None = None
@@ -288,7 +288,7 @@ class Daemon:
         """Bind the sockets, set the initial belief, start the threads. Raises OSError when
         an endpoint cannot be bound."""
         ep = self.cfg.endpoints
-        self.publisher = Publisher(self.ctx, ep.pub, ep.sndhwm, ep.curve)
+        self.publisher = open_publisher(self.ctx, ep)
         self.poses = PosePublisher(self.publisher, self.cfg.publish, self.localizer.particles)
         handlers = ControlHandlers(
             self.commands, self.localizer, self.poses, self.status, self.active, self.saver,

@@ -53,6 +53,7 @@ from pydantic import (
 
 from lino_loc.pose_estimate import Estimate
 from lino_loc.poses import wrap_angle
+from services.topics import TOPIC_NAMES
 
 #: Version of the wire protocol (the "v" field, and the schema $id).
 PROTOCOL_VERSION = 1
@@ -365,6 +366,17 @@ class PosePortInfo(BaseModel):
         0, ge=0, description="connections refused at the handshake since start (no CURVE keys, "
         "a key not authorized, not ZeroMQ)"
     )
+    relay_running: bool | None = Field(
+        None, description="whether the pose relay process runs now (None: no relay, the daemon "
+        "binds the pose port itself)"
+    )
+    relay_restarts: int = Field(
+        0, ge=0, description="times the pose relay was started again since start (it exited: "
+        "its memory limit, a crash, a kill)"
+    )
+    relay_resident_bytes: int | None = Field(
+        None, ge=0, description="the pose relay's resident memory at its last report, bytes"
+    )
 
 
 class ActiveVisionInfo(BaseModel):
@@ -459,6 +471,7 @@ TOPICS: dict[str, type[_Published]] = {
     "particles": ParticlesMessage,
     "truth": TruthMessage,
 }
+assert tuple(TOPICS) == TOPIC_NAMES, "services/topics.py names the same topics"
 
 # --------------------------------------------------------------------------------------------
 # Control requests (REP socket)

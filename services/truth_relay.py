@@ -23,7 +23,7 @@ from typing import Any
 import zmq
 
 from services.messages import TruthMessage
-from services.publisher import Publisher
+from services.publisher import AnyPublisher
 
 log = logging.getLogger("lino_loc.service.truth")
 
@@ -34,7 +34,7 @@ POLL_MS = 200
 class TruthRelay(threading.Thread):
     """SUB ``truth`` of the simulator -> the daemon's PUB socket (module docstring)."""
 
-    def __init__(self, ctx: zmq.Context[Any], endpoint: str, publisher: Publisher) -> None:
+    def __init__(self, ctx: zmq.Context[Any], endpoint: str, publisher: AnyPublisher) -> None:
         super().__init__(name="truth-relay", daemon=True)
         self.ctx = ctx
         self.endpoint = endpoint

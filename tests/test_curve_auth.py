@@ -31,6 +31,7 @@ from services.curve_auth import (
 )
 from services.messages import PingReply
 from services.publisher import Publisher
+from services.relay_publisher import RelayedPublisher
 
 
 @pytest.mark.parametrize(
@@ -154,11 +155,12 @@ class _Daemonish:
     """A Publisher publishing ``pose`` every 20 ms and a ControlServer answering pings, both
     CURVE servers in one context (as in the daemon)."""
 
-    def __init__(self, curve: CurveConfig) -> None:
+    def __init__(self, curve: CurveConfig, relayed: bool = False) -> None:
         from services.messages import PoseMessage
 
         self.ctx: zmq.Context[Any] = zmq.Context()
-        self.pub = Publisher(self.ctx, "tcp://127.0.0.1:*", 10, curve)
+        kind = RelayedPublisher if relayed else Publisher
+        self.pub = kind(self.ctx, "tcp://127.0.0.1:*", 10, curve)
         self.pub_ep = self.pub.last_endpoint
         self.control = ControlServer(self.ctx, "tcp://127.0.0.1:*", lambda req: PingReply(stamp=1.0), curve)
         self.rep_ep = self.control._sock.getsockopt(zmq.LAST_ENDPOINT).decode()
@@ -210,8 +212,11 @@ def _gets_reply(ctx: zmq.Context[Any], endpoint: str, keys: tuple[Path, Path] | 
         s.close(0)
 
 
-def test_only_an_authorized_client_gets_poses_and_replies(keys: dict[str, Path]) -> None:
-    d = _Daemonish(_curve(keys))
+@pytest.mark.parametrize("relayed", [False, True], ids=["direct", "relay"])
+def test_only_an_authorized_client_gets_poses_and_replies(keys: dict[str, Path], relayed: bool) -> None:
+    """Both ways of binding the pose port: the daemon's own socket, and the relay process
+    (services/pose_relay.py), which gets the key files' paths and counts its refusals."""
+    d = _Daemonish(_curve(keys), relayed)
     ctx: zmq.Context[Any] = zmq.Context()
     good = (keys["server_public"], keys["client_secret"])
     stranger = (keys["server_public"], keys["stranger_secret"])
@@ -266,6 +271,9 @@ def test_unreadable_keys_fail_the_bind_as_oserror(tmp_path: Path, keys: dict[str
     bad = CurveConfig(server_secret_key=tmp_path / "missing.key_secret", authorized_clients=keys["clients"])
     with pytest.raises(OSError, match="server_secret_key"):
         Publisher(ctx, "tcp://127.0.0.1:*", 10, bad)
+    with pytest.raises(OSError, match="server_secret_key") as relayed:
+        RelayedPublisher(ctx, "tcp://127.0.0.1:*", 10, bad)
+    assert "\n" not in str(relayed.value)  # the relay's one line, as the direct bind's
     with pytest.raises(OSError, match="server_secret_key"):
         ControlServer(ctx, "tcp://127.0.0.1:*", lambda req: PingReply(stamp=1.0), bad)
     t0 = time.monotonic()
