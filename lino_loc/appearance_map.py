@@ -736,7 +736,6 @@ def build_disparity_channel(
     from ``depth`` by f*B/Z, or inverse depth without a baseline), NaN-aware area-average,
     PCA with missing data by EM, and features from the valid pixels alone."""
     from lino_loc.disparity import depth_to_disparity, depth_to_inverse_depth, downsample_sparse
-    from lino_loc.pca_missing import fit_pca_missing
 
     n = len(dataset)
     w, h = int(size[0]), int(size[1])
@@ -762,6 +761,29 @@ def build_disparity_channel(
             X[i] = downsample_sparse(disp, (w, h), min_valid_fraction=min_valid_fraction).reshape(-1)
         if progress and ((i + 1) % 64 == 0 or i + 1 == n):
             progress(i + 1, n)
+    return disparity_channel_from_vectors(X, (w, h), n_features, units=units, min_valid_fraction=min_valid_fraction,
+                                          seed=seed, max_iter=max_iter, virtual=virtual)
+
+
+def disparity_channel_from_vectors(
+    X: np.ndarray,
+    size: tuple[int, int],
+    n_features: int,
+    *,
+    units: str = "disparity_px",
+    min_valid_fraction: float = 0.25,
+    seed: int = 0,
+    max_iter: int = 100,
+    virtual: VirtualHeadings | None = None,
+) -> ChannelMap:
+    """The disparity channel from working-size sparse vectors ``X`` (N, w*h), NaN = no value
+    (``min_valid_fraction`` is the one they were area-averaged with, kept for the queries):
+    with ``virtual`` each image first becomes its V turned views; then PCA with missing data
+    by EM (:func:`lino_loc.pca_missing.fit_pca_missing`) and every row's features from its
+    valid pixels alone."""
+    from lino_loc.pca_missing import fit_pca_missing
+
+    w, h = int(size[0]), int(size[1])
     if virtual is not None:
         X = augment_vectors(X, (w, h), virtual.K, virtual.offsets, virtual.margin, disparity=True)
     model = fit_pca_missing(X, n_features, seed=seed, max_iter=max_iter, dtype=np.float32)

@@ -36,7 +36,7 @@ from drivers.sim.drive import DriveConfig, plan_drive
 from drivers.sim.world import grid_poses, load_world
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import heading_errors, position_errors, success, success_pose
-from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
+from services.evaluation.views import ViewSpec, build_sim_maps, render_frames
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +61,7 @@ class GlobalSetup:
     workers: int | None = None
     virtual_headings: int = 5  # as config/sim.toml's map (lino_loc.virtual_views); 1: images alone
     virtual_step_deg: float = 3.0
+    channels: tuple[str, ...] = ("intensity",)  # with "disparity": both channels, fused (eq. 8)
 
 
 def localizer_config(setup: Any, base: LocalizerConfig | None) -> LocalizerConfig:
@@ -90,6 +91,7 @@ def run(
             seed=setup.seed, workers=setup.workers,
             progress=(lambda d, n: progress("map", d, n)) if progress else None,
             virtual_headings=setup.virtual_headings, virtual_step_deg=setup.virtual_step_deg,
+            disparity="disparity" in setup.channels,
         )[setup.preprocess]
     entries = np.asarray(appearance_map.poses, dtype=np.float64)
     # the success criteria's training points: the survey grid (the map's entries may add
@@ -99,9 +101,9 @@ def run(
     plans = [plan_drive(world, drive_cfg, seed=setup.seed * 100_003 + 1 + s) for s in range(setup.starts)]
     poses = np.concatenate([p.truth[: setup.updates] for p in plans])
     spec = ViewSpec(world=setup.world, lighting=setup.lighting, width=setup.width, height=setup.height,
-                    size=setup.size, seed=setup.seed + 1)
-    images = render_grey(spec, poses, workers=setup.workers,
-                         progress=(lambda d, n: progress("drive", d, n)) if progress else None)
+                    size=setup.size, seed=setup.seed + 1, disparity="disparity" in setup.channels)
+    images, disps = render_frames(spec, poses, workers=setup.workers,
+                                  progress=(lambda d, n: progress("drive", d, n)) if progress else None)
     n_up = min(setup.updates, min(len(p) for p in plans))
     err = np.zeros((setup.starts, n_up))
     head = np.zeros((setup.starts, n_up))
@@ -115,7 +117,8 @@ def run(
         inc = plan.increments
         est = np.zeros((n_up, 3))
         for k in range(n_up):
-            e = loc.update(inc[k], 0.0, images[s * setup.updates + k])
+            i = s * setup.updates + k
+            e = loc.update(inc[k], 0.0, images[i], None if disps is None else disps[i])
             est[k] = e.pose
             tracking[s, k] = e.state == "tracking"
         truth = plan.truth[:n_up]
@@ -138,6 +141,7 @@ def run(
         "map_heading_step_deg": float(setup.heading_step_deg),
         "features": int(np.asarray(appearance_map.channels["intensity"].features).shape[1]),
         "preprocess": setup.preprocess,
+        "channels": list(setup.channels),
         "particles": int(cfg.filter.n_particles),
         "J": int(cfg.sensor.j),
         "lighting": setup.lighting,

@@ -55,7 +55,7 @@ from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
 from services.evaluation.global_loc import localizer_config
 from services.evaluation.trajectories import trajectory_names, write_tum
-from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
+from services.evaluation.views import ViewSpec, build_sim_maps, render_frames
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +88,12 @@ class TrackingSetup:
     size: tuple[int, int] = (80, 60)
     seed: int = 0
     workers: int | None = None
+    channels: tuple[str, ...] = ("intensity",)
+
+    @property
+    def disparity(self) -> bool:
+        """Whether the map and the frames carry the disparity channel (fused by eq. 8)."""
+        return "disparity" in self.channels
 
 
 def converged_after(stamps: np.ndarray, err: np.ndarray, below: float, hold_s: float) -> float | None:
@@ -116,8 +122,11 @@ def run_filter(
     start: np.ndarray | None,
     start_cov: np.ndarray | None,
     seed: Any,
+    disparities: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[str]]:
-    """Estimates (K, 3) and states of one run over the frames of ``plan`` (global if start is None)."""
+    """Estimates (K, 3) and states of one run over the frames of ``plan`` (global if start is
+    None); ``disparities`` (K, h, w), when given, go with the images (the map's disparity
+    channel observes them)."""
     loc = Localizer(appearance_map, cfg, rng=np.random.default_rng(seed))
     if start is None:
         loc.start_global()
@@ -127,7 +136,8 @@ def run_filter(
     est = np.zeros((len(plan), 3))
     states: list[str] = []
     for k in range(len(plan)):
-        e = loc.update(inc[k], 0.0, images[k], stamp=float(plan.stamps[k]))
+        d = None if disparities is None else disparities[k]
+        e = loc.update(inc[k], 0.0, images[k], d, stamp=float(plan.stamps[k]))
         est[k] = e.pose
         states.append(e.state)
     return est, states
@@ -183,7 +193,7 @@ def run(
         maps = build_sim_maps(
             setup.world, setup.step, setup.heading_step_deg, setup.features, tuple(setup.preprocess),
             width=setup.width, height=setup.height, size=setup.size, seed=setup.seed, workers=setup.workers,
-            progress=(lambda d, n: progress("map", d, n)) if progress else None,
+            progress=(lambda d, n: progress("map", d, n)) if progress else None, disparity=setup.disparity,
         )
     plan = plan_drive(world, DriveConfig(duration=setup.duration, camera_rate=setup.rate, scene_changes=changes),
                       seed=setup.seed + 7)
@@ -197,22 +207,23 @@ def run(
         write_tum(out_dir / "odometry.tum", plan.stamps, odo, comment="wheel odometry (dead reckoning)")
     by_pre: dict[str, dict[str, Any]] = {pre: {} for pre in setup.preprocess}
     switch = setup.switch_lights if setup.switch_lights and set(setup.switch_lights) <= set(setup.lights) else None
-    kept: dict[str, np.ndarray] = {}
+    kept: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
     for light in setup.lights:
         cond = "+".join((light, *changes))
         spec = ViewSpec(world=setup.world, lighting=light, scene_changes=changes, width=setup.width,
-                        height=setup.height, size=setup.size, seed=setup.seed + 11)
-        images = render_grey(spec, truth, workers=setup.workers,
-                             progress=(lambda d, n, c=cond: progress(f"render {c}", d, n)) if progress else None)
+                        height=setup.height, size=setup.size, seed=setup.seed + 11, disparity=setup.disparity)
+        images, disps = render_frames(
+            spec, truth, workers=setup.workers,
+            progress=(lambda d, n, c=cond: progress(f"render {c}", d, n)) if progress else None)
         if switch is not None and light in switch:
-            kept[light] = images
+            kept[light] = (images, disps)
         for pre in setup.preprocess:
             amap = maps[pre]
-            est, states = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1))
+            est, states = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disps)
             res: dict[str, Any] = {"condition": cond, **track_metrics(est, truth)}
             res["lost_fraction"] = float(np.mean([s == "lost" for s in states]))
             if setup.global_start:
-                gest, gstates = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2))
+                gest, gstates = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2), disps)
                 gerr = position_errors(gest, truth)
                 t_c = converged_after(plan.stamps, gerr, setup.converged_m, setup.converged_hold_s)
                 res["converged_after_s"] = t_c
@@ -224,11 +235,11 @@ def run(
             if setup.compare_recovery:
                 cfg0 = cfg.model_copy(deep=True)
                 cfg0.filter.recovery.max_inject_fraction = 0.0
-                est0, states0 = run_filter(amap, cfg0, plan, images, truth[0], start_cov, (setup.seed, 1))
+                est0, states0 = run_filter(amap, cfg0, plan, images, truth[0], start_cov, (setup.seed, 1), disps)
                 res0: dict[str, Any] = {**track_metrics(est0, truth),
                                         "lost_fraction": float(np.mean([s == "lost" for s in states0]))}
                 if setup.global_start:
-                    gest0, _ = run_filter(amap, cfg0, plan, images, None, None, (setup.seed, 2))
+                    gest0, _ = run_filter(amap, cfg0, plan, images, None, None, (setup.seed, 2), disps)
                     res0["converged_after_s"] = converged_after(
                         plan.stamps, position_errors(gest0, truth), setup.converged_m, setup.converged_hold_s)
                 res["without_recovery"] = res0
@@ -248,8 +259,10 @@ def run(
     switched: dict[str, Any] | None = None
     if switch is not None:
         k_sw = len(plan) // 2
-        images = np.concatenate([kept[switch[0]][:k_sw], kept[switch[1]][k_sw:]])
-        est, states = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1))
+        (ia, da), (ib, db) = kept[switch[0]], kept[switch[1]]
+        images = np.concatenate([ia[:k_sw], ib[k_sw:]])
+        disps = None if da is None or db is None else np.concatenate([da[:k_sw], db[k_sw:]])
+        est, states = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disps)
         switched = {"lights": list(switch), **switch_metrics(plan.stamps, est, truth, states, k_sw)}
         log.info("tracking, lights %s -> %s at %.0f s: mean error after %.3f m, lost after %.1f %%", *switch,
                  switched["switch_at_s"], switched["mean_error_after_m"], 100 * switched["lost_fraction_after"])
@@ -260,6 +273,8 @@ def run(
         "map_heading_step_deg": float(setup.heading_step_deg),
         "features": int(np.asarray(maps[head].channels["intensity"].features).shape[1]),
         "preprocess": head,
+        "channels": list(setup.channels),
+        "fusion": cfg.fusion.model_dump() if setup.disparity else None,
         "particles": int(cfg.filter.n_particles),
         "J": int(cfg.sensor.j),
         "duration_s": float(plan.stamps[-1]),

@@ -15,6 +15,7 @@ preprocessing, eq. 1) kept as map files under ~/.cache/lino-loc/maps (``$LINO_LO
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
@@ -159,6 +160,46 @@ def render_grey(
     return np.concatenate(parts)
 
 
+def _render_frame_chunk(args: tuple[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    start, poses = args
+    assert _worker is not None
+    spec, renderer = _worker
+    w, h = spec.size
+    grey = np.empty((len(poses), spec.height, spec.width), dtype=np.uint8)
+    disp = np.empty((len(poses), h, w), dtype=np.float32)
+    for k, (x, y, theta) in enumerate(poses):
+        rng = np.random.default_rng((spec.seed, start + k))
+        view = renderer.render(float(x), float(y), float(theta), stereo=True, rng=rng)
+        grey[k] = view.grey
+        d = compute_disparity(view.left, view.right, spec.stereo)
+        disp[k] = downsample_sparse(d, spec.size, spec.min_valid_fraction)
+    return grey, disp
+
+
+def render_frames(
+    spec: ViewSpec,
+    poses: np.ndarray,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    chunk: int = 32,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """What the camera delivers at robot poses (N, 3), pan 0: the grey images (N, height,
+    width) uint8 (the same as :func:`render_grey`'s: the left image of the pair) and, with
+    ``spec.disparity``, the product's sparse disparity of each stereo pair
+    (:func:`lino_loc.disparity.compute_disparity`, ``spec.stereo``), area-averaged to
+    ``spec.size`` (N, h, w) float32, NaN = no value: the map's disparity channel averages a
+    full-size map to that size with the same ``min_valid_fraction``, which leaves this one
+    unchanged. Without ``spec.disparity``: (:func:`render_grey`, None)."""
+    if not spec.disparity:
+        return render_grey(spec, poses, workers, progress, chunk), None
+    parts = _run_chunks(spec, np.asarray(poses, dtype=np.float64).reshape(-1, 3), _render_frame_chunk,
+                        workers, progress, chunk, count=lambda part: len(part[0]))
+    if not parts:
+        w, h = spec.size
+        return np.zeros((0, spec.height, spec.width), dtype=np.uint8), np.zeros((0, h, w), dtype=np.float32)
+    return np.concatenate([g for g, _ in parts]), np.concatenate([d for _, d in parts])
+
+
 # --------------------------------------------------------------------------- survey maps
 
 
@@ -185,6 +226,9 @@ def build_sim_maps(
     progress: Callable[[int, int], None] | None = None,
     virtual_headings: int = 1,
     virtual_step_deg: float = 3.0,
+    disparity: bool = False,
+    stereo: StereoConfig | None = None,
+    min_valid_fraction: float = 0.25,
 ) -> dict[str, AppearanceMap]:
     """Appearance maps (eq. 1) of a simulated survey, one per preprocessing, built in memory.
 
@@ -195,20 +239,33 @@ def build_sim_maps(
     kept as a map file under :func:`map_cache_dir`, keyed by every parameter and the world's
     fingerprint, and loaded from there next time. ``virtual_headings`` > 1: every image also
     gives that many views turned ``virtual_step_deg`` apart (:mod:`lino_loc.virtual_views`).
+    ``disparity``: every map also gets the disparity channel (section 5) of the same survey's
+    stereo pairs, through the product's matcher (``stereo``, sparse: NaN where it found no
+    match) and PCA with missing data (:func:`lino_loc.appearance_map.disparity_channel_from_vectors`).
     """
     import math
 
-    from lino_loc.appearance_map import AppearanceMap, intensity_channel_from_vectors, virtual_setup
+    from lino_loc.appearance_map import (
+        AppearanceMap,
+        disparity_channel_from_vectors,
+        intensity_channel_from_vectors,
+        virtual_setup,
+    )
     from lino_loc.dataset import CameraInfo
     from lino_loc.virtual_views import augment_poses, offsets
 
     w = load_world(world)
     cam = CameraModel(width=width, height=height)
+    stereo = stereo or StereoConfig()
+    depth_key = ""
+    if disparity:
+        blob = stereo.model_dump_json() + f"|{min_valid_fraction:g}"
+        depth_key = f"-disparity-{hashlib.sha256(blob.encode()).hexdigest()[:10]}"
     key = (
         f"{w.name}-{lighting}-{step:g}m-{heading_step_deg:g}deg-{features}f-{{pre}}-{width}x{height}-"
         f"{size[0]}x{size[1]}-s{seed}"
         + (f"-v{virtual_headings}x{virtual_step_deg:g}" if virtual_headings > 1 else "")
-        + f"-{w.fingerprint[:10]}-c{code_fingerprint()}.npz"
+        + depth_key + f"-{w.fingerprint[:10]}-c{code_fingerprint()}.npz"
     )
     out: dict[str, AppearanceMap] = {}
     missing = []
@@ -225,17 +282,21 @@ def build_sim_maps(
         return out
     poses = grid_poses(w, step, math.radians(heading_step_deg))
     spec = ViewSpec(world=world, lighting=lighting, width=width, height=height, size=size,
-                    preprocess=tuple(missing), seed=seed)
+                    preprocess=tuple(missing), disparity=disparity, stereo=stereo,
+                    min_valid_fraction=min_valid_fraction, seed=seed)
     vectors = render_vectors(spec, poses, workers=workers, progress=progress)
     fx, fy, cx, cy = cam.intrinsics()
     info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)
     virtual = None if virtual_headings <= 1 else virtual_setup(
         info, size, offsets(math.radians(virtual_step_deg), virtual_headings))
+    depth = None if not disparity else disparity_channel_from_vectors(
+        vectors["disparity"], size, features, min_valid_fraction=min_valid_fraction, seed=seed, virtual=virtual)
     for pre in missing:
         ch = intensity_channel_from_vectors(vectors[pre], pre, size, features,  # type: ignore[arg-type]
                                             virtual=virtual, seed=seed)
         map_poses = poses.copy() if virtual is None else augment_poses(poses, virtual.offsets)
-        amap = AppearanceMap(poses=map_poses, channels={"intensity": ch}, camera=info,
+        channels = {"intensity": ch} if depth is None else {"intensity": ch, "disparity": depth}
+        amap = AppearanceMap(poses=map_poses, channels=channels, camera=info,
                              source=f"sim:{w.name}", name=f"{w.name}-{lighting}", condition=lighting)
         if cache:
             path = map_cache_dir() / key.format(pre=pre)

@@ -40,6 +40,22 @@ def _localizer_config(args: argparse.Namespace):  # -> LocalizerConfig
     return LocalizerConfig()
 
 
+def parse_channels(text: str) -> tuple[str, ...]:
+    """``--channels``: ``intensity`` or ``intensity,disparity`` (the map's channels, fused by
+    eq. 8 with the ``[localizer.fusion]`` settings when disparity is among them)."""
+    names = tuple(c.strip() for c in text.split(",") if c.strip())
+    unknown = [c for c in names if c not in ("intensity", "disparity")]
+    if unknown or "intensity" not in names or len(set(names)) != len(names):
+        raise LinoLocError(f"--channels: expected intensity or intensity,disparity, got {text!r}")
+    return names
+
+
+def add_channels_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--channels", default="intensity", type=str,
+                   help="the map's channels: intensity, or intensity,disparity (the survey's stereo "
+                   "pairs through the product's matcher, fused by eq. 8 with [localizer.fusion])")
+
+
 # --------------------------------------------------------------------------- global
 
 
@@ -50,14 +66,16 @@ def _global(args: argparse.Namespace) -> int:
         raise LinoLocError("--starts and --updates must be at least 1")
     setup = GlobalSetup(world=args.world, features=args.features, preprocess=args.preprocess,
                         starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
-                        j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings)
+                        j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
+                        channels=parse_channels(args.channels))
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), progress=cb)  # type: ignore[arg-type]
     bar.close()
     if args.json:
         print(json.dumps(res))
         return 0
-    print(f"global localization, {res['world']}: {res['starts']} starts, map {res['map_entries']} entries, "
+    print(f"global localization, {res['world']}: {res['starts']} starts, map {res['map_entries']} entries "
+          f"({'+'.join(res['channels'])}), "
           f"{res['features']} features, J={res['J']}, {res['particles']} particles, {res['rate_hz']:g} Hz")
     print(f"{'update':>6} {'mean err m':>11} {'median m':>9} {'success':>8} {'tracking':>9}")
     for k in range(res["updates"]):
@@ -95,7 +113,7 @@ def _tracking(args: argparse.Namespace) -> int:
                           particles=args.particles, j=args.j, global_start=not args.no_global,
                           compare_recovery=not args.no_recovery_comparison,
                           switch_lights=_switch_lights(args.switch_lights, lights),
-                          seed=args.seed, workers=args.workers)
+                          seed=args.seed, workers=args.workers, channels=parse_channels(args.channels))
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), trajectories=args.trajectories, progress=cb)  # type: ignore[arg-type]
     bar.close()
@@ -103,7 +121,8 @@ def _tracking(args: argparse.Namespace) -> int:
         print(json.dumps(res))
         return 0
     print(f"tracking, {res['world']}: {res['duration_s']:.0f} s, {res['path_length_m']:.1f} m, "
-          f"{res['frames']} frames, map {res['map_entries']} entries, {res['features']} features, "
+          f"{res['frames']} frames, map {res['map_entries']} entries ({'+'.join(res['channels'])}), "
+          f"{res['features']} features, "
           f"J={res['J']}, {res['particles']} particles; scene changes: {', '.join(res['scene_changes']) or 'none'}")
     tables = res.get("by_preprocess", {res["preprocess"]: res["conditions"]})
     for p, conds in tables.items():
@@ -167,6 +186,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--virtual-headings", type=int, default=5, choices=range(1, 32), metavar="N",
                    help="map entries per survey image, turned 3 deg apart (lino_loc.virtual_views), as "
                    "config/sim.toml's map; 1: the images alone (default 5)")
+    add_channels_option(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
@@ -195,6 +215,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="skip the runs with kidnap recovery switched off")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
+    add_channels_option(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
