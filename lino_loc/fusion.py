@@ -32,6 +32,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from lino_loc.fusion_weights import AdaptiveWeightsConfig
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 from lino_loc.sensor_model import LOG_2PI, Bounds, PoseMixture, log_von_mises_norm
@@ -43,8 +44,13 @@ class FusionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     mode: Literal["disjunctive", "conjunctive"] = "disjunctive"
-    w_d: float = Field(0.5, ge=0.0, description="weight of the disparity channel (eq. 8)")
-    w_i: float = Field(0.5, ge=0.0, description="weight of the intensity channel (eq. 8)")
+    weights: Literal["fixed", "adaptive"] = Field(
+        "fixed", description="disjunctive weights: fixed (w_d, w_i: the paper's) or adaptive (each "
+        "channel's recent predictive likelihood, lino_loc/fusion_weights.py)"
+    )
+    w_d: float = Field(0.5, ge=0.0, description="weight of the disparity channel (eq. 8, fixed weights)")
+    w_i: float = Field(0.5, ge=0.0, description="weight of the intensity channel (eq. 8, fixed weights)")
+    adaptive: AdaptiveWeightsConfig = Field(default_factory=AdaptiveWeightsConfig)
     j_intensity: int = Field(5, ge=1)
     j_disparity: int = Field(5, ge=1)
 

@@ -37,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.errors import LinoLocError
 from lino_loc.fusion import FusionConfig, fuse
+from lino_loc.fusion_weights import AdaptiveFusionWeights
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig, FreeSpace
 from lino_loc.pose_estimate import Estimate
@@ -102,6 +103,12 @@ class Localizer:
             if name in ("intensity", "disparity")
         }
         self.channels = channels
+        fc = self.config.fusion
+        self._adaptive = (
+            AdaptiveFusionWeights(fc.adaptive)
+            if fc.weights == "adaptive" and "disparity" in self.models
+            else None
+        )
         seed_rng = rng if rng is not None else np.random.default_rng(self.config.filter.seed)
         self.filter = AuxiliaryParticleFilter(
             OdometryMotionModel(self.config.motion),
@@ -117,7 +124,15 @@ class Localizer:
         self, image: np.ndarray | None, disparity: np.ndarray | None = None
     ) -> PoseMixture | None:
         """The (fused) sensor-model mixture over camera poses for an image and optional
-        disparity map; None when there is nothing to observe."""
+        disparity map, with the current fusion weights; None when there is nothing to observe."""
+        mixtures = self.channel_mixtures(image, disparity)
+        return None if mixtures is None else self._fuse(mixtures)
+
+    def channel_mixtures(
+        self, image: np.ndarray | None, disparity: np.ndarray | None = None
+    ) -> dict[str, PoseMixture] | None:
+        """Each observing channel's J-nearest-neighbour mixture (section 3); None when no
+        channel observes anything."""
         fc = self.config.fusion
         feats: dict[str, np.ndarray] = {}
         if image is not None:
@@ -136,10 +151,17 @@ class Localizer:
             return None
         both = len(feats) == 2
         j_of = {"intensity": fc.j_intensity, "disparity": fc.j_disparity}
-        mixtures = {
+        return {
             name: self.models[name].observe(y, j_of[name] if both else self.config.sensor.j)
             for name, y in feats.items()
         }
+
+    def _fuse(self, mixtures: dict[str, PoseMixture]) -> PoseMixture:
+        """Eq. 7 / 8 with the configured weights, or the adaptive ones (``fusion_weights``)."""
+        fc = self.config.fusion
+        if len(mixtures) == 2 and self._adaptive is not None and fc.mode == "disjunctive":
+            w = self._adaptive.weights(list(mixtures))
+            fc = fc.model_copy(update={"w_i": w["intensity"], "w_d": w["disparity"]})
         fused = fuse(mixtures, fc)
         if "intensity" in mixtures and math.isnan(fused.novelty):
             # the filter's kidnap recovery trusts the observation only when the image is
@@ -160,9 +182,22 @@ class Localizer:
         """One localization step: odometry increment (dx, dy, dtheta) in the robot frame since
         the last update, the head's pan angle (rad) at the frame's time, the image (None when
         the camera failed: prediction only) and the optional disparity map."""
-        mixture = self.observe(image, disparity)
+        mixtures = self.channel_mixtures(image, disparity)
+        mixture = None
+        if mixtures is not None:
+            if self._adaptive is not None and len(mixtures) == 2:
+                self._adaptive.update(mixtures, self.filter.particles, self.filter.log_weights,
+                                      odometry_delta, float(pan))
+            mixture = self._fuse(mixtures)
         self.filter.update(odometry_delta, float(pan), mixture)
         return self.estimate(stamp)
+
+    @property
+    def fusion_weights(self) -> dict[str, float] | None:
+        """The adaptive fusion weights now (None with fixed weights)."""
+        if self._adaptive is None:
+            return None
+        return self._adaptive.weights([n for n in ("intensity", "disparity") if n in self.models])
 
     def predict_only(self, odometry_delta: ArrayLike, stamp: float | None = None) -> Estimate:
         """Propagate by odometry alone (the camera failed or no frame arrived)."""
@@ -177,10 +212,14 @@ class Localizer:
         ``tracking`` at once; unconfirmed (a recalled pose) stays ``global`` until the views
         confirm it (:meth:`AuxiliaryParticleFilter.set_pose`)."""
         self.filter.set_pose(mean, cov, confirmed)
+        if self._adaptive is not None:
+            self._adaptive.reset()
 
     def start_global(self) -> None:
         """Forget the pose: uniform belief over the mapped area and all headings."""
         self.filter.start_global()
+        if self._adaptive is not None:
+            self._adaptive.reset()
 
     # ----------------------------------------------------------------- read-only views
 

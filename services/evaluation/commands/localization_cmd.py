@@ -33,11 +33,15 @@ def _progress() -> tuple[Progress, object]:
 def _localizer_config(args: argparse.Namespace):  # -> LocalizerConfig
     from lino_loc.localizer import LocalizerConfig
 
+    cfg = LocalizerConfig()
     if getattr(args, "config", None):
         from services.config import load_config
 
-        return load_config(args.config).localizer
-    return LocalizerConfig()
+        cfg = load_config(args.config).localizer
+    if getattr(args, "fusion_weights", None):
+        cfg = cfg.model_copy(deep=True)
+        cfg.fusion.weights = args.fusion_weights
+    return cfg
 
 
 def parse_channels(text: str) -> tuple[str, ...]:
@@ -54,6 +58,9 @@ def add_channels_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channels", default="intensity", type=str,
                    help="the map's channels: intensity, or intensity,disparity (the survey's stereo "
                    "pairs through the product's matcher, fused by eq. 8 with [localizer.fusion])")
+    p.add_argument("--fusion-weights", default=None, choices=("fixed", "adaptive"),
+                   help="eq. 8's weights: fixed (the paper's 1/2, 1/2) or adaptive (each channel's recent "
+                   "predictive likelihood); default: the configuration's")
 
 
 # --------------------------------------------------------------------------- global
