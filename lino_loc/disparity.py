@@ -14,6 +14,12 @@ Conventions of this module
   (RGB-D data, :func:`depth_to_inverse_depth`).
 - Maps work on small images (e.g. 80 x 60): :func:`downsample_sparse` averages the valid
   pixels of each block and leaves a block without a value when too few of its pixels have one.
+- Two cheaper or denser variants (``StereoConfig.matcher``, ``StereoConfig.downscale``):
+  semi-global matching (``cv2.StereoSGBM``, Hirschmueller 2008, what stereo cameras such as
+  the OAK-D compute on the device) with the same uniqueness, left-right and speckle checks
+  but no texture threshold; and matching a pair area-averaged by ``downscale`` (2: 320 x 240
+  matched at 160 x 120), whose map comes out at the matched size with values in pixels of the
+  full-size left image (the matched disparity times ``downscale``).
 
 Usage::
 
@@ -25,6 +31,7 @@ Usage::
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -75,6 +82,12 @@ class StereoConfig(BaseModel):
     pre_filter_type: str = Field("xsobel", description="'xsobel' or 'normalized_response'")
     pre_filter_size: int = Field(9, ge=5, le=255, description="normalized-response window (odd)")
     pre_filter_cap: int = Field(31, ge=1, le=63, description="clip of the pre-filtered image")
+    matcher: Literal["bm", "sgbm"] = Field(
+        "bm", description="block matching (StereoBM) or semi-global matching (StereoSGBM)"
+    )
+    downscale: Literal[1, 2, 4] = Field(
+        1, description="match the pair area-averaged by this factor (the map comes out that much smaller)"
+    )
 
     @field_validator("num_disparities")
     @classmethod
@@ -128,8 +141,18 @@ def _as_grey_u8(img: ArrayLike, name: str) -> NDArray[np.uint8]:
     return np.ascontiguousarray(a)
 
 
-def create_matcher(config: StereoConfig) -> cv2.StereoBM:
-    """An OpenCV ``StereoBM`` set up from ``config`` (speckle filtering is done outside)."""
+def create_matcher(config: StereoConfig) -> cv2.StereoMatcher:
+    """An OpenCV ``StereoBM`` or ``StereoSGBM`` set up from ``config`` (speckle filtering is
+    done outside). SGBM's smoothness penalties are OpenCV's suggested ``P1 = 8 b^2``,
+    ``P2 = 32 b^2`` for a grey image and block side b."""
+    if config.matcher == "sgbm":
+        b = config.block_size
+        return cv2.StereoSGBM_create(
+            minDisparity=config.min_disparity, numDisparities=config.num_disparities, blockSize=b,
+            P1=8 * b * b, P2=32 * b * b, disp12MaxDiff=config.disp12_max_diff,
+            preFilterCap=config.pre_filter_cap, uniquenessRatio=config.uniqueness_ratio,
+            speckleWindowSize=0, speckleRange=0, mode=cv2.STEREO_SGBM_MODE_SGBM,
+        )
     bm = cv2.StereoBM_create(numDisparities=config.num_disparities, blockSize=config.block_size)
     bm.setMinDisparity(config.min_disparity)
     bm.setTextureThreshold(config.texture_threshold)
@@ -152,7 +175,9 @@ def create_matcher(config: StereoConfig) -> cv2.StereoBM:
 def compute_disparity(
     left: ArrayLike, right: ArrayLike, config: StereoConfig | None = None
 ) -> FloatImage:
-    """Sparse disparity of a rectified pair, float32 pixels of the left image, NaN = no value.
+    """Sparse disparity of a rectified pair, float32 pixels of the left image, NaN = no value
+    (with ``config.downscale`` s > 1: the map is (H/s, W/s), its values still in pixels of
+    the full-size left image; the search range and the window are the matched image's).
 
     Pixels get no value where the window is not textured enough (``texture_threshold``),
     where the best match is not unique enough (``uniqueness_ratio``), where the left-right
@@ -165,6 +190,11 @@ def compute_disparity(
     ru = _as_grey_u8(right, "right")
     if lu.shape != ru.shape:
         raise LinoLocError(f"left and right images differ in size: {lu.shape} vs {ru.shape}")
+    s = config.downscale
+    if s > 1:
+        size = (lu.shape[1] // s, lu.shape[0] // s)
+        lu = cv2.resize(lu, size, interpolation=cv2.INTER_AREA)
+        ru = cv2.resize(ru, size, interpolation=cv2.INTER_AREA)
     h, w = lu.shape
     if min(h, w) < config.block_size or w <= config.num_disparities + config.min_disparity:
         raise LinoLocError(
@@ -183,7 +213,7 @@ def compute_disparity(
             int(round(config.speckle_range * DISPARITY_SCALE)),
         )
         invalid |= raw == invalid_value
-    disp = raw.astype(np.float32) / DISPARITY_SCALE
+    disp = raw.astype(np.float32) * np.float32(s / DISPARITY_SCALE)
     disp[invalid] = np.nan
     return disp
 

@@ -190,3 +190,33 @@ def test_downsample_sparse_size_is_width_height_and_non_integer_factor():
     assert stack.shape == (2, 30, 40)
     with pytest.raises(LinoLocError):
         downsample_sparse(a, (100, 30))
+
+
+@pytest.mark.parametrize("true_d", [8.0, 12.5, 20.25])
+def test_semi_global_matching_gives_the_disparity_of_a_shifted_pair(true_d):
+    left, right = _pair(true_d, seed=int(true_d * 4))
+    disp = compute_disparity(left, right, StereoConfig(matcher="sgbm"))
+    assert disp.dtype == np.float32 and disp.shape == (H, W)
+    region = np.zeros((H, W), bool)
+    region[10:-10, 80:-10] = True
+    region[FLAT[0].start - 10 : FLAT[0].stop + 10, FLAT[1].start - 10 : FLAT[1].stop + 10] = False
+    valid = np.isfinite(disp)
+    assert valid[region].mean() > 0.95
+    assert np.percentile(np.abs(disp[region & valid] - true_d), 95) <= 0.5
+    assert np.isnan(disp[:, : StereoConfig().num_disparities - 1]).all()  # no search range there
+
+
+@pytest.mark.parametrize("true_d", [8.0, 20.0])
+def test_a_downscaled_match_is_smaller_and_in_full_size_pixels(true_d):
+    left, right = _pair(true_d, seed=3)
+    cfg = StereoConfig(downscale=2, num_disparities=32)
+    disp = compute_disparity(left, right, cfg)
+    assert disp.shape == (H // 2, W // 2)
+    region = np.zeros((H // 2, W // 2), bool)
+    region[5:-5, 40:-5] = True
+    region[FLAT[0].start // 2 - 8 : FLAT[0].stop // 2 + 8, FLAT[1].start // 2 - 8 : FLAT[1].stop // 2 + 8] = False
+    valid = np.isfinite(disp)
+    assert valid[region].mean() > 0.9
+    # the matched disparity is true_d / 2 at half size; the map says true_d (full-size pixels)
+    assert abs(np.median(disp[region & valid]) - true_d) <= 0.25
+    assert np.isnan(disp[:, : cfg.num_disparities - 1]).all()

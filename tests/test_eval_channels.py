@@ -10,7 +10,13 @@ import pytest
 from services.cli import main as cli_main
 from services.evaluation import tracking
 from services.evaluation.commands.localization_cmd import parse_channels
-from services.evaluation.views import ViewSpec, build_sim_maps, render_frames, render_grey, render_vectors
+from services.evaluation.views import (
+    ViewSpec,
+    build_sim_maps,
+    render_frames,
+    render_grey,
+    render_vectors,
+)
 
 SMALL = {"width": 160, "height": 120, "size": (40, 30)}
 POSES = np.array([[1.0, 1.0, 0.0], [2.0, 1.5, 1.2], [6.0, 0.5, -2.0]])
