@@ -44,14 +44,9 @@ sys.path.insert(0, str(ROOT))
 
 from drivers.sim.renderer import CameraModel, Renderer  # noqa: E402
 from drivers.sim.world import grid_poses, load_world  # noqa: E402
-from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse  # noqa: E402
+from lino_loc.disparity import STEREO_PRESETS as MATCHERS  # noqa: E402
+from lino_loc.disparity import compute_disparity, downsample_sparse  # noqa: E402
 
-MATCHERS: dict[str, StereoConfig] = {
-    "bm": StereoConfig(),
-    "bm/2": StereoConfig(downscale=2, num_disparities=32),
-    "sgbm": StereoConfig(matcher="sgbm"),
-    "sgbm/2": StereoConfig(matcher="sgbm", downscale=2, num_disparities=32),
-}
 SIZE = (80, 60)
 MIN_VALID = 0.25
 

@@ -128,6 +128,16 @@ class StereoConfig(BaseModel):
         return self.model_copy(update={"num_disparities": n})
 
 
+#: Named matchers (``--stereo`` of the evaluations): the product's StereoBM at the camera's
+#: size, at half size (32 disparities: the same depth range), and semi-global matching.
+STEREO_PRESETS: dict[str, StereoConfig] = {
+    "bm": StereoConfig(),
+    "bm/2": StereoConfig(downscale=2, num_disparities=32),
+    "sgbm": StereoConfig(matcher="sgbm"),
+    "sgbm/2": StereoConfig(matcher="sgbm", downscale=2, num_disparities=32),
+}
+
+
 def _as_grey_u8(img: ArrayLike, name: str) -> NDArray[np.uint8]:
     a = np.asarray(img)
     if a.ndim == 3 and a.shape[2] in (3, 4):

@@ -43,7 +43,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +51,7 @@ import numpy as np
 
 from drivers.sim.drive import DriveConfig, DrivePlan, plan_drive
 from drivers.sim.world import load_world
+from lino_loc.disparity import StereoConfig
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
 from services.evaluation.global_loc import localizer_config
@@ -89,6 +90,7 @@ class TrackingSetup:
     seed: int = 0
     workers: int | None = None
     channels: tuple[str, ...] = ("intensity",)
+    stereo: StereoConfig = field(default_factory=StereoConfig)  # the matcher of the disparity channel
 
     @property
     def disparity(self) -> bool:
@@ -194,6 +196,7 @@ def run(
             setup.world, setup.step, setup.heading_step_deg, setup.features, tuple(setup.preprocess),
             width=setup.width, height=setup.height, size=setup.size, seed=setup.seed, workers=setup.workers,
             progress=(lambda d, n: progress("map", d, n)) if progress else None, disparity=setup.disparity,
+            stereo=setup.stereo,
         )
     plan = plan_drive(world, DriveConfig(duration=setup.duration, camera_rate=setup.rate, scene_changes=changes),
                       seed=setup.seed + 7)
@@ -211,7 +214,8 @@ def run(
     for light in setup.lights:
         cond = "+".join((light, *changes))
         spec = ViewSpec(world=setup.world, lighting=light, scene_changes=changes, width=setup.width,
-                        height=setup.height, size=setup.size, seed=setup.seed + 11, disparity=setup.disparity)
+                        height=setup.height, size=setup.size, seed=setup.seed + 11, disparity=setup.disparity,
+                        stereo=setup.stereo)
         images, disps = render_frames(
             spec, truth, workers=setup.workers,
             progress=(lambda d, n, c=cond: progress(f"render {c}", d, n)) if progress else None)
@@ -275,6 +279,7 @@ def run(
         "preprocess": head,
         "channels": list(setup.channels),
         "fusion": cfg.fusion.model_dump() if setup.disparity else None,
+        "stereo": setup.stereo.model_dump() if setup.disparity else None,
         "particles": int(cfg.filter.n_particles),
         "J": int(cfg.sensor.j),
         "duration_s": float(plan.stamps[-1]),

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from lino_loc.disparity import STEREO_PRESETS
 from lino_loc.errors import LinoLocError
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from services.progress import Progress
@@ -58,6 +59,9 @@ def add_channels_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channels", default="intensity", type=str,
                    help="the map's channels: intensity, or intensity,disparity (the survey's stereo "
                    "pairs through the product's matcher, fused by eq. 8 with [localizer.fusion])")
+    p.add_argument("--stereo", default="bm", choices=tuple(STEREO_PRESETS),
+                   help="the disparity channel's matcher: bm (StereoBM at the camera's size, the product's), "
+                   "bm/2 (at half size), sgbm, sgbm/2 (semi-global)")
     p.add_argument("--fusion-weights", default=None, choices=("fixed", "adaptive"),
                    help="eq. 8's weights: fixed (the paper's 1/2, 1/2) or adaptive (each channel's recent "
                    "predictive likelihood); default: the configuration's")
@@ -120,7 +124,8 @@ def _tracking(args: argparse.Namespace) -> int:
                           particles=args.particles, j=args.j, global_start=not args.no_global,
                           compare_recovery=not args.no_recovery_comparison,
                           switch_lights=_switch_lights(args.switch_lights, lights),
-                          seed=args.seed, workers=args.workers, channels=parse_channels(args.channels))
+                          seed=args.seed, workers=args.workers, channels=parse_channels(args.channels),
+                          stereo=STEREO_PRESETS[args.stereo])
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), trajectories=args.trajectories, progress=cb)  # type: ignore[arg-type]
     bar.close()
