@@ -105,7 +105,15 @@ def test_setup_report_is_the_flat_setup_of_the_result() -> None:
         "roughen_theta": 0.0, "inject": 0.0, "n_actions": 22, "predicted_neighbours": "all", "pan_min": -2.6,
         "pan_max": 2.6, "positions": 20, "runs": 10, "movements": 10, "scene_changes": [],
         "min_grid_distance": 0.15, "sweep_stride": 7, "width": 320, "height": 240, "size": [80, 60], "seed": 0,
-        "strategies": ["entropy", "random", "sweep"], "filter": {}, "motion": {},
+        "strategies": ["entropy", "random", "sweep"], "filter": {}, "motion": {}, "channels": ["intensity"],
     }
     report = ActiveSetup().report()
     assert report == expected and list(report) == list(expected)
+
+
+def test_the_disparity_channel_is_fused_into_the_filter(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "active", "--json", *TINY, "--movements", "1", "--channels", "intensity,disparity"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["setup"]["channels"] == ["intensity", "disparity"]
+    for strat in res["strategies"].values():
+        assert all(math.isfinite(v) for v in strat["mean_error_m"])

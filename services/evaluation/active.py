@@ -45,6 +45,7 @@ import numpy as np
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.active_vision import ActionEvaluator, belief_entropy
 from lino_loc.appearance_map import channel_margin
+from lino_loc.fusion import fuse
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter
@@ -87,35 +88,44 @@ def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> 
 
 def render_map(
     setup: ActiveSetup, progress: ProgressFn | None
-) -> tuple[Any, np.ndarray, np.ndarray, int]:
+) -> tuple[Any, np.ndarray, np.ndarray, int, tuple[Any, np.ndarray] | None]:
     """The survey map as the simulated service builds it (:func:`services.evaluation.views.build_sim_maps`:
     PCA, eq. 1, of the grid views and their virtual headings): its PCA, the map features (N, d),
-    the poses (N, 3) of the map entries and the columns cropped each side of a view."""
+    the poses (N, 3) of the map entries, the columns cropped each side of a view, and with
+    ``disparity`` in ``setup.channels`` the disparity channel's (PCA, features), else None."""
     amap = build_sim_maps(setup.world, setup.step, setup.heading_step_deg, setup.features, (setup.preprocess,),
                           lighting=setup.lighting, width=setup.width, height=setup.height, size=setup.size,
                           seed=setup.seed, workers=setup.workers,
                           progress=(lambda d, n: progress("map", d, n)) if progress else None,
                           virtual_headings=setup.virtual_headings, virtual_step_deg=setup.virtual_step_deg,
+                          disparity="disparity" in setup.channels,
                           )[setup.preprocess]
     ch = amap.channels["intensity"]
-    return ch.pca, np.asarray(ch.features, dtype=np.float64), np.asarray(amap.poses), channel_margin(ch)
+    dch = amap.channels.get("disparity")
+    disp = None if dch is None else (dch.pca, np.asarray(dch.features, dtype=np.float64))
+    return ch.pca, np.asarray(ch.features, dtype=np.float64), np.asarray(amap.poses), channel_margin(ch), disp
 
 
 def render_tests(
     setup: ActiveSetup, pca: Any, margin: int, truths: np.ndarray, pans: np.ndarray, changes: tuple[str, ...],
-    progress: ProgressFn | None,
-) -> np.ndarray:
-    """Features (P, A, d) of the view at every test position and candidate pan."""
+    progress: ProgressFn | None, disparity_pca: Any = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Features (P, A, d) of the view at every test position and candidate pan, and with
+    ``disparity_pca`` those of its sparse disparity (the product's matcher), else None."""
     cams = np.repeat(truths[:, None, :], pans.size, axis=1)
     cams[:, :, 2] = cams[:, :, 2] + pans[None, :]
     spec = ViewSpec(world=setup.world, lighting=setup.lighting, scene_changes=changes, width=setup.width,
                     height=setup.height, size=setup.size, preprocess=(setup.preprocess,),
-                    seed=setup.seed + 1000 + 17 * len(changes))
+                    seed=setup.seed + 1000 + 17 * len(changes), disparity=disparity_pca is not None)
     label = "tests" + ("+" + "+".join(changes) if changes else "")
-    X = render_vectors(spec, cams.reshape(-1, 3), workers=setup.workers,
-                       progress=(lambda d, n: progress(label, d, n)) if progress else None)[setup.preprocess]
-    X = crop_columns(X, setup.size, margin)
-    return np.asarray(pca.project(X), dtype=np.float64).reshape(truths.shape[0], pans.size, -1)
+    V = render_vectors(spec, cams.reshape(-1, 3), workers=setup.workers,
+                       progress=(lambda d, n: progress(label, d, n)) if progress else None)
+    shape = (truths.shape[0], pans.size, -1)
+    feats = np.asarray(pca.project(crop_columns(V[setup.preprocess], setup.size, margin)), dtype=np.float64)
+    if disparity_pca is None:
+        return feats.reshape(shape), None
+    D = np.asarray(disparity_pca.project(crop_columns(V["disparity"], setup.size, margin)), dtype=np.float64)
+    return feats.reshape(shape), D.reshape(shape)
 
 
 # --------------------------------------------------------------------------- runs
@@ -123,14 +133,29 @@ def render_tests(
 _ctx: dict[str, Any] = {}
 
 
-def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarray, map_poses: np.ndarray) -> None:
+def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarray, map_poses: np.ndarray,
+                 disparity_features: np.ndarray | None = None) -> None:
     """``entries``: poses of the sensor model's map entries; ``map_poses``: the survey grid
-    (the success criteria's training points)."""
+    (the success criteria's training points); ``disparity_features``: the disparity channel's
+    map features (the filter then fuses both channels by eq. 8; the action evaluation predicts
+    views with the intensity channel alone)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     world = load_world(setup.world)
     model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
-    _ctx.update(setup=setup, world=world, model=model, evaluator=ActionEvaluator(model, setup.active),
-                map_poses=map_poses)
+    model_d = None if disparity_features is None else NearestNeighbourSensorModel(
+        entries, disparity_features, setup.sensor, bounds=model.bounds)
+    _ctx.update(setup=setup, world=world, model=model, model_d=model_d,
+                evaluator=ActionEvaluator(model, setup.active), map_poses=map_poses)
+
+
+def _observe(fi: np.ndarray, fd: np.ndarray | None) -> Any:
+    """The sensor-model mixture of a view: intensity alone, or fused with its disparity."""
+    model: NearestNeighbourSensorModel = _ctx["model"]
+    model_d: NearestNeighbourSensorModel | None = _ctx["model_d"]
+    if model_d is None or fd is None or not np.all(np.isfinite(fd)):
+        return model.observe(fi)
+    fc = _ctx["setup"].fusion
+    return fuse({"intensity": model.observe(fi, fc.j_intensity), "disparity": model_d.observe(fd, fc.j_disparity)}, fc)
 
 
 def roughen(pf: AuxiliaryParticleFilter, setup: ActiveSetup, mixture: Any = None, pan: float = 0.0) -> None:
@@ -154,10 +179,10 @@ def roughen(pf: AuxiliaryParticleFilter, setup: ActiveSetup, mixture: Any = None
     pf.set_particles(pf.particles + jitter, pf.log_weights)
 
 
-def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
+def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) -> dict[str, Any]:
     """All runs and strategies at one test position: errors and successes (R, moves + 1) per
     strategy, the H(u) evaluation times, and (position 0, run 0) particle snapshots."""
-    pos, truth, feats = args
+    pos, truth, feats, dfeats = args
     setup: ActiveSetup = _ctx["setup"]
     world: World = _ctx["world"]
     model: NearestNeighbourSensorModel = _ctx["model"]
@@ -188,7 +213,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
                                            == truth_cell)))
             a = a0
             ests, seq = [], [a]
-            mix = model.observe(feats[a])
+            mix = _observe(feats[a], None if dfeats is None else dfeats[a])
             pf.update(zero, float(pans[a]), mix)
             roughen(pf, setup, mix, float(pans[a]))
             ests.append(pf.estimate().pose)
@@ -205,7 +230,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray]) -> dict[str, Any]:
                 else:
                     a = (a + setup.sweep_stride) % n_a
                 seq.append(a)
-                mix = model.observe(feats[a])
+                mix = _observe(feats[a], None if dfeats is None else dfeats[a])
                 pf.update(zero, float(pans[a]), mix)
                 roughen(pf, setup, mix, float(pans[a]))
                 ests.append(pf.estimate().pose)
@@ -279,12 +304,15 @@ def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict
 def run_condition(
     setup: ActiveSetup, map_poses: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
     truths: np.ndarray, feats: np.ndarray, progress: ProgressFn | None, label: str,
+    disparity: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    jobs = [(i, truths[i], feats[i]) for i in range(truths.shape[0])]
+    """Every test position's runs (``disparity``: the map's and the tests' disparity features)."""
+    dmap, dtests = (None, None) if disparity is None else disparity
+    jobs = [(i, truths[i], feats[i], None if dtests is None else dtests[i]) for i in range(truths.shape[0])]
     workers = setup.workers or os.cpu_count() or 1
     parts: list[dict[str, Any]] = []
     if workers == 1:
-        _init_worker(setup, entries, map_features, map_poses)
+        _init_worker(setup, entries, map_features, map_poses, dmap)
         it = map(run_position, jobs)
         for part in it:
             parts.append(part)
@@ -292,7 +320,7 @@ def run_condition(
                 progress(label, len(parts), len(jobs))
     else:
         with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(setup, entries, map_features, map_poses)) as pool:
+                                 initargs=(setup, entries, map_features, map_poses, dmap)) as pool:
             for part in pool.map(run_position, jobs):
                 parts.append(part)
                 if progress:
@@ -308,7 +336,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     changes = world.check_changes(setup.scene_changes)
     grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
     pans = setup.active.actions()
-    pca, map_features, entries, margin = render_map(setup, progress)
+    pca, map_features, entries, margin, disp = render_map(setup, progress)
     truths = place_test_positions(world, setup, grid)
     conditions: list[tuple[str, tuple[str, ...]]] = [("none", ())]
     if changes:
@@ -319,9 +347,11 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     diagnostics: dict[str, Any] = {}
     bands: dict[str, Any] = {}
     for name, ch in conditions:
-        feats = render_tests(setup, pca, margin, truths, pans, ch, progress)
+        feats, dfeats = render_tests(setup, pca, margin, truths, pans, ch, progress,
+                                     None if disp is None else disp[0])
         summary, parts = run_condition(setup, grid, entries, map_features, truths, feats, progress,
-                                       "runs" + ("" if not ch else f" ({name})"))
+                                       "runs" + ("" if not ch else f" ({name})"),
+                                       None if disp is None or dfeats is None else (disp[1], dfeats))
         bands[name] = success_by_band(parts, setup.strategies, grid_distance(truths, grid))
         results[name] = summary
         extras[name] = parts

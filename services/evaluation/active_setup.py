@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from lino_loc.active_vision import ActiveVisionConfig
+from lino_loc.fusion import FusionConfig
 from lino_loc.motion_model import MotionModelConfig
 from lino_loc.particle_filter import FilterConfig
 from lino_loc.sensor_model import SensorModelConfig
@@ -70,6 +71,8 @@ class ActiveSetup:
     ideal: bool = False
     filter: dict[str, Any] = field(default_factory=dict)
     motion: dict[str, Any] = field(default_factory=dict)
+    channels: tuple[str, ...] = ("intensity",)  # with "disparity": the filter fuses both (eq. 8)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
 
     def filter_config(self) -> FilterConfig:
         return FilterConfig(n_particles=self.particles, **self.filter)
@@ -96,6 +99,6 @@ class ActiveSetup:
             "scene_changes": self.scene_changes, "min_grid_distance": self.min_grid_distance,
             "sweep_stride": self.sweep_stride, "width": self.width, "height": self.height, "size": self.size,
             "seed": self.seed, "strategies": self.strategies, "filter": dict(self.filter),
-            "motion": dict(self.motion),
+            "motion": dict(self.motion), "channels": list(self.channels),
         }
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in out.items()}

@@ -15,6 +15,7 @@ from services.evaluation.active_setup import (
     paper_active_vision,
     paper_sensor_model,
 )
+from services.evaluation.commands.localization_cmd import parse_channels
 from services.evaluation.plotting import pyplot
 from services.progress import Progress
 
@@ -77,7 +78,8 @@ def _run(args: argparse.Namespace) -> int:
                         ideal=args.ideal, virtual_headings=args.virtual_headings,
                         virtual_step_deg=args.virtual_step, preprocess=args.preprocess,
                         filter={"global_proposal_fraction": args.global_proposal},
-                        motion={"min_sigma_xy": args.floor_xy, "min_sigma_theta": math.radians(args.floor_theta)})
+                        motion={"min_sigma_xy": args.floor_xy, "min_sigma_theta": math.radians(args.floor_theta)},
+                        channels=parse_channels(args.channels))
     bar = Progress("active")
     result, extras = run(setup, progress=lambda label, d, n: bar.update(d, n, label=label))
     bar.close()
@@ -130,6 +132,9 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--j", type=int, default=10, help="nearest neighbours of the sensor model")
     p.add_argument("--scene-changes", default="",
                    help="also run with these scene changes of the world (comma-separated, or 'all')")
+    p.add_argument("--channels", default="intensity",
+                   help="the map's channels: intensity, or intensity,disparity (the filter fuses both, eq. 8; "
+                   "the views are chosen with the intensity channel's predictions)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--plot", metavar="DIR", default=None, help="write Fig. 3 and Fig. 4 PNGs here")
