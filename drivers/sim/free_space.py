@@ -38,6 +38,8 @@ LOOP_GROW_STEP = 0.05
 LOOP_POINTS = 800
 #: Candidate loops checked at once (one vectorized raster look-up).
 LOOP_BATCH = 256
+#: A lattice axis of :func:`free_loop_box` has at least this many lines across the mapped area.
+LATTICE_LINES = 20
 #: Cell (m) of the free-space raster of :func:`free_loop_box`.
 FREE_LOOP_CELL = 0.02
 
@@ -127,9 +129,19 @@ def _loops_free(free: FreeSpace, boxes: np.ndarray, unit: np.ndarray) -> np.ndar
     return free.is_free(x, y).all(axis=1)
 
 
-def _grow(free: FreeSpace, box: np.ndarray, bounds: Box4, unit: np.ndarray) -> np.ndarray:
+def _off_grid(v: np.ndarray, origin: float, step: float | None) -> np.ndarray:
+    """Whether the coordinates ``v`` are at least ``step / 4`` from every line ``origin + k step``
+    (all True without a step)."""
+    if step is None:
+        return np.ones(np.shape(v), bool)
+    r = np.mod(np.asarray(v, dtype=np.float64) - origin, step)
+    return np.minimum(r, step - r) >= 0.25 * step - 1e-9
+
+
+def _grow(free: FreeSpace, box: np.ndarray, bounds: Box4, unit: np.ndarray, grid_step: float | None) -> np.ndarray:
     """Move the sides of ``box`` outward by :data:`LOOP_GROW_STEP`, one side at a time (xmin,
-    xmax, ymin, ymax in turn), as long as the loop stays free and inside ``bounds``."""
+    xmax, ymin, ymax in turn), as long as the loop stays free, inside ``bounds`` and each side
+    off the survey grid's lines (:func:`_off_grid`)."""
     cur = np.asarray(box, dtype=np.float64).copy()
     grew = True
     while grew:
@@ -138,7 +150,9 @@ def _grow(free: FreeSpace, box: np.ndarray, bounds: Box4, unit: np.ndarray) -> n
             cand = cur.copy()
             step = cand[k] + sign * LOOP_GROW_STEP
             cand[k] = max(step, bounds[k]) if sign < 0 else min(step, bounds[k])
-            if cand[k] != cur[k] and _loops_free(free, cand[None, :], unit)[0]:
+            origin = bounds[0] if k < 2 else bounds[2]
+            if (cand[k] != cur[k] and _off_grid(cand[k], origin, grid_step)
+                    and _loops_free(free, cand[None, :], unit)[0]):
                 cur = cand
                 grew = True
     return cur
@@ -151,6 +165,7 @@ def free_loop_box(
     margin: float = 0.1,
     exponent: float = 4.0,
     lattice: float = 0.1,
+    grid_step: float | None = None,
 ) -> Box4:
     """The box (xmin, xmax, ymin, ymax) of the longest free test loop (see the module docstring).
 
@@ -158,7 +173,9 @@ def free_loop_box(
     world without scene changes. The candidate boxes have their sides on a lattice of
     ``lattice`` metres inside the mapped area, shifted from its minimum corner by an offset in
     [0, ``lattice``) per axis drawn from ``numpy.random.default_rng(seed)``, both sides at
-    least :data:`MIN_LOOP_SIDE`. Their loops (:func:`superellipse` with ``exponent``, checked at
+    least :data:`MIN_LOOP_SIDE`; with ``grid_step`` (the survey grid's step, the grid starting
+    at the mapped area's minimum corner) only lattice lines at least ``grid_step / 4`` from the
+    grid's lines, so that the loop's straight stretches run between surveyed rows and columns. Their loops (:func:`superellipse` with ``exponent``, checked at
     :data:`LOOP_POINTS` points) are tried longest perimeter first (ties: the order of the
     lattice); the first free one is grown side by side (:func:`_grow`) while it stays free and
     inside the mapped area. Raises :class:`LinoLocError` naming the world when no loop fits."""
@@ -167,9 +184,13 @@ def free_loop_box(
                            f"exponent {exponent}, lattice {lattice})")
     bounds = world.mapped_area
     mx0, mx1, my0, my1 = bounds
-    off = np.random.default_rng(seed).uniform(0.0, lattice, 2)
-    gx = mx0 + off[0] + lattice * np.arange(int(math.floor((mx1 - mx0 - off[0]) / lattice)) + 1)
-    gy = my0 + off[1] + lattice * np.arange(int(math.floor((my1 - my0 - off[1]) / lattice)) + 1)
+    lx = min(lattice, (mx1 - mx0) / LATTICE_LINES)
+    ly = min(lattice, (my1 - my0) / LATTICE_LINES)
+    off = np.random.default_rng(seed).uniform(0.0, 1.0, 2) * (lx, ly)
+    gx = mx0 + off[0] + lx * np.arange(int(math.floor((mx1 - mx0 - off[0]) / lx)) + 1)
+    gy = my0 + off[1] + ly * np.arange(int(math.floor((my1 - my0 - off[1]) / ly)) + 1)
+    gx = gx[_off_grid(gx, mx0, grid_step)]
+    gy = gy[_off_grid(gy, my0, grid_step)]
     ix0, ix1 = np.triu_indices(len(gx), 1)
     iy0, iy1 = np.triu_indices(len(gy), 1)
     sx = gx[ix1] - gx[ix0]
@@ -186,7 +207,7 @@ def free_loop_box(
         boxes = np.column_stack([gx[ix0[px[sel]]], gx[ix1[px[sel]]], gy[iy0[py[sel]]], gy[iy1[py[sel]]]])
         ok = np.flatnonzero(_loops_free(free, boxes, unit))
         if ok.size:
-            b = _grow(free, boxes[ok[0]], bounds, unit)
+            b = _grow(free, boxes[ok[0]], bounds, unit, grid_step)
             return float(b[0]), float(b[1]), float(b[2]), float(b[3])
     raise LinoLocError(f"free loop: no closed loop fits the free space of world '{world.name}' "
                        f"(radius {radius} + margin {margin} m, mapped area {bounds})")

@@ -18,7 +18,8 @@ features per channel:
 The test path (:func:`path_poses`) is a smooth closed loop (a superellipse) off the survey grid,
 derived from the world's free space alone (:func:`drivers.sim.free_space.free_loop_box`: the
 longest loop inside the mapped area that keeps a robot disc of 0.25 m plus a 0.1 m margin clear of
-walls and furniture, its lattice seeded by ``seed``; in the lab it goes round the two benches), unless
+walls and furniture, its sides a quarter of ``step`` or more off the survey grid's lines, its lattice
+seeded by ``seed``; in the lab it goes round the two benches), unless
 ``path_box`` gives the loop's box; test poses are taken every ``spacing`` metres of arc length with
 the heading along the path, and rendered under ``tube``, ``bulb`` and ``natural`` light with
 sensor noise seeded apart from the map's. At each test pose the sensor model's map points are
@@ -81,11 +82,15 @@ TEST_SEED_OFFSET = 1000
 PATH_MARGIN = 0.1
 
 
-def default_path_box(world: World, seed: int = 0, exponent: float = 4.0) -> tuple[float, float, float, float]:
+def default_path_box(
+    world: World, seed: int = 0, exponent: float = 4.0, grid_step: float | None = 0.5
+) -> tuple[float, float, float, float]:
     """The test loop's box (xmin, xmax, ymin, ymax) in ``world``: the longest free loop of its
     free space (:func:`drivers.sim.free_space.free_loop_box`, robot radius 0.25 m plus
-    :data:`PATH_MARGIN`, lattice offset from ``seed``)."""
-    return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent)
+    :data:`PATH_MARGIN`, lattice offset from ``seed``), its sides a quarter of ``grid_step``
+    or more off the survey grid's lines (None: anywhere)."""
+    return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent,
+                         grid_step=grid_step)
 
 
 @dataclass(frozen=True)
@@ -399,7 +404,7 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
     for pre, amap in maps.items():
         if amap.poses.shape != poses.shape or not np.allclose(amap.poses, poses):
             raise LinoLocError(f"intensity map ({pre}) and disparity map have different poses")
-    box = setup.path_box or default_path_box(world, setup.seed, setup.path_exponent)
+    box = setup.path_box or default_path_box(world, setup.seed, setup.path_exponent, setup.step)
     truths = path_poses(world, setup.spacing, box, setup.path_exponent, avoid=poses)
     log.info("sensor model: %d test poses along the path", len(truths))
     lim = grid_limit(truths, poses)
