@@ -88,9 +88,17 @@ def default_path_box(
     """The test loop's box (xmin, xmax, ymin, ymax) in ``world``: the longest free loop of its
     free space (:func:`drivers.sim.free_space.free_loop_box`, robot radius 0.25 m plus
     :data:`PATH_MARGIN`, lattice offset from ``seed``), its sides a quarter of ``grid_step``
-    or more off the survey grid's lines (None: anywhere)."""
-    return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent,
-                         grid_step=grid_step)
+    or more off the survey grid's lines (None: anywhere; also when no loop fits between the
+    lines of a grid coarse for the free space, which is logged)."""
+    try:
+        return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent,
+                             grid_step=grid_step)
+    except LinoLocError:
+        if grid_step is None:
+            raise
+    log.warning("test path: no free loop between the %g m survey grid's lines in world %r; "
+                "the loop may run along them", grid_step, world.name)
+    return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent)
 
 
 @dataclass(frozen=True)
