@@ -1,6 +1,7 @@
 """The corridor world (config/worlds/corridor.json): it loads and renders, its three lights and
 its named scene changes exist and differ, its repeated doors make distant views alike; interior
-walls cast shadows; the office and the lab have none, so their bakes skip the wall test."""
+walls cast shadows; the office and the lab have none, so their bakes skip the wall test; the
+tracking and global evaluations run on it (tiny sizes)."""
 
 from __future__ import annotations
 
@@ -132,3 +133,18 @@ def test_office_and_lab_have_no_interior_wall_the_corridor_has(corridor: World) 
         w = load_world(name)
         assert interior_walls(w, w.spec.walls).shape == (0, 4)
     assert len(interior_walls(corridor, corridor.spec.walls)) >= 14
+
+
+def test_tracking_and_global_evaluations_run_on_the_corridor() -> None:
+    from services.evaluation import global_loc, tracking
+
+    small = {"width": 80, "height": 60, "size": (40, 30), "workers": 1}
+    res = tracking.run(tracking.TrackingSetup(
+        world="corridor", step=1.0, heading_step_deg=45.0, features=4, preprocess=("none",), lights=("tube",),
+        scene_changes=("people",), duration=2.0, rate=2.0, particles=100, switch_lights=None, **small))
+    assert res["world"] == "corridor" and res["frames"] == 5
+    assert 0.0 <= res["conditions"]["tube"]["mean_error_m"] < 14.0
+    g = global_loc.run(global_loc.GlobalSetup(
+        world="corridor", starts=2, updates=3, particles=200, step=1.0, heading_step_deg=45.0, features=4,
+        virtual_headings=1, **small))
+    assert g["world"] == "corridor" and len(g["mean_error_m"]) == 3
