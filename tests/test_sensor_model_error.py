@@ -140,7 +140,35 @@ def test_fused_error_is_the_min_over_both_channels_parts(tiny: tuple[dict, objec
         assert np.all(np.asarray(r["intensity"]["errors_m"]) <= part_i + 1e-4)
 
 
-@pytest.mark.parametrize("extra", [["--j", "1"], ["--lights", "moonlight"], ["--spacing", "0"]])
+def test_tiny_run_on_the_corridor_derives_its_path_from_the_free_space() -> None:
+    buf = io.StringIO()
+    args = ["eval", "sensor-model", "--world", "corridor", "--json", *TINY, "--step", "1.0", "--heading-step", "90",
+            "--lights", "tube,bulb", "--compare", ""]
+    with contextlib.redirect_stdout(buf):
+        assert main(args) == 0
+    res = json.loads(buf.getvalue())
+    world = load_world("corridor")
+    assert res["world"] == "corridor" and set(res["conditions"]) == {"tube", "bulb"}
+    assert res["path"]["box_from"] == "free space"
+    poses = np.asarray(res["path"]["poses"])
+    assert len(poses) >= 8 and np.all(world.is_free(poses[:, 0], poses[:, 1], 0.35))
+    xmin, xmax, _, _ = world.mapped_area
+    assert poses[:, 0].max() - poses[:, 0].min() > 0.8 * (xmax - xmin)  # the corridor's length
+    for r in res["conditions"].values():
+        assert r["intensity"]["mean_m"] >= res["grid_limit_m"]["mean_m"] - 1e-3
+
+
+def test_path_box_given_is_the_old_lab_loop() -> None:
+    world = load_world("lab")
+    old = (0.35, 8.65, 1.15, 3.75)
+    p = path_poses(world, 0.3, old, 4.0)
+    assert p[:, 0].min() >= old[0] - 1e-9 and p[:, 0].max() <= old[1] + 1e-9
+    assert p[:, 1].min() >= old[2] - 1e-9 and p[:, 1].max() <= old[3] + 1e-9
+    assert default_path_box(world) != old  # the default is derived, not this constant
+
+
+@pytest.mark.parametrize("extra", [["--j", "1"], ["--lights", "moonlight"], ["--spacing", "0"],
+                                   ["--path-box", "1,2,3"], ["--path-box", "2,1,0,1"], ["--path-box", "a,b,c,d"]])
 def test_bad_values_exit_2_with_one_line(extra: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "sensor-model", "--json", *TINY, *extra]) == 2
     captured = capsys.readouterr()

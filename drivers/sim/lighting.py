@@ -17,7 +17,9 @@ ceiling, 10 cm on furniture) and upsampled bilinearly. ``E`` sums
 - a constant ``ambient`` term (the indirect light),
 
 each with the cosine at the receiving surface, the inverse-square falloff and hard shadows
-cast by the furniture boxes (a segment/box slab test). ``emission`` is the glowing diffuser
+cast by the furniture boxes (a segment/box slab test) and by the *interior* walls, the walls
+that do not lie on the room rectangle's boundary (a 2D segment crossing test: walls are floor
+to ceiling). A world with only boundary walls, a single room, needs no wall test and skips it. ``emission`` is the glowing diffuser
 of the ceiling tubes that are switched on, and the outside view of open windows.
 
 The atlas holds a mip-map pyramid (texels x1, x2, x4, x8) of every surface so that the
@@ -33,7 +35,7 @@ import cv2
 import numpy as np
 
 from drivers.sim.textures import albedo_texture, texture_shape
-from drivers.sim.world import Box, TextureSpec, World
+from drivers.sim.world import Box, TextureSpec, Wall, World
 
 MIP_LEVELS = 4
 FIXTURE_WIDTH = 0.15  # m, width of a tube's diffuser on the ceiling
@@ -318,8 +320,41 @@ def _visible_pairs(p: np.ndarray, q: np.ndarray, boxes: np.ndarray) -> np.ndarra
     return vis
 
 
+def interior_walls(world: World, walls: tuple[Wall, ...]) -> np.ndarray:
+    """(K, 4) segments (x0, y0, x1, y1) of the walls not lying on one side of the room
+    rectangle (both ends on the same side, within 1 mm): the ones that cast shadows."""
+    xmin, xmax, ymin, ymax = world.room
+    out = []
+    for w in walls:
+        (x0, y0), (x1, y1) = w.start, w.end
+        on_side = any(abs(a - v) < 1e-3 and abs(b - v) < 1e-3
+                      for a, b, v in ((x0, x1, xmin), (x0, x1, xmax), (y0, y1, ymin), (y0, y1, ymax)))
+        if not on_side:
+            out.append((x0, y0, x1, y1))
+    return np.array(out, np.float64).reshape(-1, 4)
+
+
+def _walls_clear(p: np.ndarray, q: np.ndarray, walls: np.ndarray, pairs: bool = False) -> np.ndarray:
+    """Whether the segments from points p (n, 3) to q (m, 3) cross no wall of ``walls`` (K, 4)
+    in the floor plan (a proper crossing: the segment's ends excluded, the wall's included).
+    Returns (n, m) bool, or (n,) with ``pairs`` (segment p[i] -> q[i])."""
+    pp = p[:, None, :2] if not pairs else p[:, :2]
+    d = (q[None, :, :2] if not pairs else q[:, :2]) - pp
+    clear = np.ones(d.shape[:-1], bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for x0, y0, x1, y1 in walls:
+            ex, ey = x1 - x0, y1 - y0
+            wx, wy = x0 - pp[..., 0], y0 - pp[..., 1]
+            den = d[..., 0] * ey - d[..., 1] * ex
+            t = (wx * ey - wy * ex) / den
+            u = (wx * d[..., 1] - wy * d[..., 0]) / den
+            clear &= ~((np.abs(den) > 1e-12) & (t > 1e-6) & (t < 1.0 - 1e-6) & (u >= 0.0) & (u <= 1.0))
+    return clear
+
+
 def _irradiance(world: World, lighting: str, pts: np.ndarray, nrm: np.ndarray, two_sided: np.ndarray,
-                shadowed: np.ndarray, samples: _Samples, boxes: np.ndarray) -> np.ndarray:
+                shadowed: np.ndarray, samples: _Samples, boxes: np.ndarray,
+                walls: np.ndarray | None = None) -> np.ndarray:
     setup = world.check_lighting(lighting)
     e = np.full(len(pts), setup.ambient, np.float64)
     chunk = max(1, 200_000 // max(1, len(samples.pos)))
@@ -340,16 +375,18 @@ def _irradiance(world: World, lighting: str, pts: np.ndarray, nrm: np.ndarray, t
                 vis = np.ones(contrib.shape, bool)
                 vis[sh] = _visible((p[sh] + 0.01 * n[sh])[:, 0, :], samples.pos, boxes)
                 contrib = contrib * vis
+            if walls is not None and len(walls):
+                contrib = contrib * _walls_clear((p + 0.01 * n)[:, 0, :], samples.pos, walls)
             e[s0:s0 + chunk] += contrib.sum(axis=1)
         for light in setup.lights:
             if light.type == "sun" and setup.windows_open:
                 e[s0:s0 + chunk] += _sun(world, light.direction, light.power, pts[s0:s0 + chunk],
-                                         nrm[s0:s0 + chunk], boxes)
+                                         nrm[s0:s0 + chunk], boxes, walls)
     return e
 
 
 def _sun(world: World, direction: tuple[float, float, float], power: float, pts: np.ndarray, nrm: np.ndarray,
-         boxes: np.ndarray) -> np.ndarray:
+         boxes: np.ndarray, walls: np.ndarray | None = None) -> np.ndarray:
     d = np.array(direction, float)
     d /= np.linalg.norm(d)
     cos_s = np.maximum(-(nrm @ d), 0.0)
@@ -380,6 +417,9 @@ def _sun(world: World, direction: tuple[float, float, float], power: float, pts:
             sl = idx[k0:k0 + 4096]
             ok[k0:k0 + 4096] = _visible_pairs(pts[sl] + 0.01 * nrm[sl], far[sl], boxes)
         lit[idx] = ok
+    if walls is not None and len(walls) and lit.any():
+        idx = np.flatnonzero(lit)
+        lit[idx] = _walls_clear(pts[idx] + 0.01 * nrm[idx], far[idx], walls, pairs=True)
     return power * cos_s * lit
 
 
@@ -421,7 +461,7 @@ def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str]
         shad.append(np.full(len(p), s.shadowed))
         shapes.append((r, c))
     e_all = _irradiance(world, lighting, np.concatenate(pts), np.concatenate(nrms), np.concatenate(two),
-                        np.concatenate(shad), samples, boxes)
+                        np.concatenate(shad), samples, boxes, interior_walls(world, geo.walls))
     levels: list[list[np.ndarray]] = [[] for _ in range(MIP_LEVELS)]
     k = 0
     for s, (r, c) in zip(surfaces, shapes, strict=True):

@@ -7,7 +7,9 @@ A world file (``config/worlds/<name>.json``) describes one floor of a building:
 - ``textures``: named procedural albedo textures (see :mod:`drivers.sim.textures`);
 - ``walls``: floor-to-ceiling wall segments with a texture and *decals* painted on them
   (doors, posters, whiteboards, ...) and *windows* (curtains, or an outside view that
-  emits light when the curtains are open);
+  emits light when the curtains are open); walls inside the room rectangle divide it into
+  rooms (an open door is a gap between two segments, its lintel a box above the robot's
+  height; they cast shadows, see :mod:`drivers.sim.lighting`);
 - ``templates`` and ``furniture``: pieces of furniture made of boxes (axis-aligned or
   rotated footprints, ``zmin``/``zmax``); a template reused several times gives
   identical pieces, which is what makes single views ambiguous;

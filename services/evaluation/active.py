@@ -45,6 +45,7 @@ import numpy as np
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.active_vision import ActionEvaluator, belief_entropy
 from lino_loc.appearance_map import channel_margin
+from lino_loc.errors import LinoLocError
 from lino_loc.fusion import fuse
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
 from lino_loc.motion_model import OdometryMotionModel
@@ -83,7 +84,8 @@ def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> 
         out.extend(c[ok])
         if len(out) >= setup.positions:
             return np.asarray(out[: setup.positions])
-    raise RuntimeError("could not place the test positions")
+    raise LinoLocError(f"active: could not place {setup.positions} test positions in world '{world.name}' "
+                       f"(free, {setup.min_grid_distance} m or more from the grid)")
 
 
 def render_map(

@@ -15,8 +15,12 @@ features per channel:
   as :func:`lino_loc.appearance_map.build_disparity_channel` does). The renderer's exact depth
   is never used: the map is built from the same kind of sparse disparity the robot sees.
 
-The test path (:func:`path_poses`) is a smooth closed loop (a superellipse) round the two lab
-benches, off the survey grid; test poses are taken every ``spacing`` metres of arc length with
+The test path (:func:`path_poses`) is a smooth closed loop (a superellipse) off the survey grid,
+derived from the world's free space alone (:func:`drivers.sim.free_space.free_loop_box`: the
+longest loop inside the mapped area that keeps a robot disc of 0.25 m plus a 0.1 m margin clear of
+walls and furniture, its sides a quarter of ``step`` or more off the survey grid's lines, its lattice
+seeded by ``seed``; in the lab it goes round the two benches), unless
+``path_box`` gives the loop's box; test poses are taken every ``spacing`` metres of arc length with
 the heading along the path, and rendered under ``tube``, ``bulb`` and ``natural`` light with
 sensor noise seeded apart from the map's. At each test pose the sensor model's map points are
 
@@ -50,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from drivers.sim.code_fingerprint import code_fingerprint
+from drivers.sim.free_space import free_loop_box, superellipse
 from drivers.sim.renderer import CameraModel
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.appearance_map import AppearanceMap, ChannelMap
@@ -73,14 +78,27 @@ ProgressFn = Callable[[str, int, int], None]
 #: from the survey's (seed, view index).
 TEST_SEED_OFFSET = 1000
 
-#: The box of the test loop per world (x_min, x_max, y_min, y_max): in the lab, round the two
-#: benches in the middle of the room, between them and the desks and cabinets along the walls.
-PATH_BOXES: dict[str, tuple[float, float, float, float]] = {"lab": (0.35, 8.65, 1.15, 3.75)}
+#: Clearance (m) the test loop keeps beyond the robot disc (:func:`default_path_box`).
+PATH_MARGIN = 0.1
 
 
-def default_path_box(world: World) -> tuple[float, float, float, float] | None:
-    """The test loop's box for ``world`` (None: the mapped area shrunk by 0.45 m)."""
-    return PATH_BOXES.get(world.name)
+def default_path_box(
+    world: World, seed: int = 0, exponent: float = 4.0, grid_step: float | None = 0.5
+) -> tuple[float, float, float, float]:
+    """The test loop's box (xmin, xmax, ymin, ymax) in ``world``: the longest free loop of its
+    free space (:func:`drivers.sim.free_space.free_loop_box`, robot radius 0.25 m plus
+    :data:`PATH_MARGIN`, lattice offset from ``seed``), its sides a quarter of ``grid_step``
+    or more off the survey grid's lines (None: anywhere; also when no loop fits between the
+    lines of a grid coarse for the free space, which is logged)."""
+    try:
+        return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent,
+                             grid_step=grid_step)
+    except LinoLocError:
+        if grid_step is None:
+            raise
+    log.warning("test path: no free loop between the %g m survey grid's lines in world %r; "
+                "the loop may run along them", grid_step, world.name)
+    return free_loop_box(world, seed=seed, radius=0.25, margin=PATH_MARGIN, exponent=exponent)
 
 
 @dataclass(frozen=True)
@@ -100,7 +118,7 @@ class SensorModelSetup:
     w_i: float = 0.5
     w_d: float = 0.5
     spacing: float = 0.3
-    path_box: tuple[float, float, float, float] | None = None  # None: PATH_BOXES or the mapped area
+    path_box: tuple[float, float, float, float] | None = None  # None: derived from the free space
     path_exponent: float = 4.0
     width: int = 320
     height: int = 240
@@ -125,8 +143,8 @@ def path_poses(
     """Test poses every ``spacing`` m of arc length along a closed smooth loop, heading along it.
 
     The loop is the superellipse ``|x - cx|^p / a^p + |y - cy|^p / b^p = 1`` (p = ``exponent``)
-    inscribed in ``box`` = (xmin, xmax, ymin, ymax) (default: the mapped area shrunk by 0.45 m;
-    see :data:`PATH_BOXES`), driven counter-clockwise. Raises
+    inscribed in ``box`` = (xmin, xmax, ymin, ymax) (default: :func:`default_path_box` with
+    seed 0), driven counter-clockwise. Raises
     :class:`LinoLocError` when a test position is not free for a robot disc of ``radius``.
     ``avoid`` (K, 2+): positions the test poses should keep away from (the survey grid): the
     phase of the samples along the loop (one of 16 offsets in [0, spacing)) is the one that
@@ -136,18 +154,11 @@ def path_poses(
     if spacing <= 0:
         raise LinoLocError(f"path spacing must be positive, got {spacing}")
     if box is None:
-        mx0, mx1, my0, my1 = world.mapped_area
-        box = (mx0 + 0.45, mx1 - 0.45, my0 + 0.45, my1 - 0.45)
+        box = default_path_box(world, 0, exponent)
     xmin, xmax, ymin, ymax = (float(v) for v in box)
-    cx, cy = 0.5 * (xmin + xmax), 0.5 * (ymin + ymax)
-    a, b = 0.5 * (xmax - xmin), 0.5 * (ymax - ymin)
-    if a <= 0 or b <= 0:
+    if xmax <= xmin or ymax <= ymin:
         raise LinoLocError(f"test path box {box} is empty")
-    t = np.linspace(0.0, 2.0 * np.pi, samples + 1)
-    c, s = np.cos(t), np.sin(t)
-    e = 2.0 / exponent
-    x = cx + a * np.sign(c) * np.abs(c) ** e
-    y = cy + b * np.sign(s) * np.abs(s) ** e
+    x, y = superellipse((xmin, xmax, ymin, ymax), exponent, samples)
     seg = np.hypot(np.diff(x), np.diff(y))
     arc = np.concatenate([[0.0], np.cumsum(seg)])
     length = float(arc[-1])
@@ -401,7 +412,7 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
     for pre, amap in maps.items():
         if amap.poses.shape != poses.shape or not np.allclose(amap.poses, poses):
             raise LinoLocError(f"intensity map ({pre}) and disparity map have different poses")
-    box = setup.path_box or default_path_box(world)
+    box = setup.path_box or default_path_box(world, setup.seed, setup.path_exponent, setup.step)
     truths = path_poses(world, setup.spacing, box, setup.path_exponent, avoid=poses)
     log.info("sensor model: %d test poses along the path", len(truths))
     lim = grid_limit(truths, poses)
@@ -457,6 +468,8 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
         "positions": int(len(truths)),
         "path": {
             "spacing_m": setup.spacing,
+            "box": [round(float(v), 4) for v in box],
+            "box_from": "given" if setup.path_box else "free space",
             "length_m": float(arc[-1]),
             "arc_m": [round(float(v), 4) for v in arc],
             "poses": [[round(float(v), 5) for v in p] for p in truths],

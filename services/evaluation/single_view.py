@@ -22,6 +22,7 @@ import numpy as np
 
 from drivers.sim.world import grid_poses, load_world
 from lino_loc.appearance_map import channel_margin
+from lino_loc.errors import LinoLocError
 from lino_loc.metrics import success, success_pose
 from lino_loc.virtual_views import crop_columns
 from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
@@ -53,12 +54,15 @@ def off_grid_poses(world_name: str, grid: np.ndarray, n: int, min_distance: floa
     xmin, xmax, ymin, ymax = world.mapped_area
     grid_xy = np.unique(np.round(grid[:, :2], 6), axis=0)
     out: list[np.ndarray] = []
-    while len(out) < n:
+    for _ in range(10000):
         c = np.column_stack([rng.uniform(xmin, xmax, 256), rng.uniform(ymin, ymax, 256),
                              rng.uniform(-np.pi, np.pi, 256)])
         d = np.min(np.hypot(c[:, None, 0] - grid_xy[None, :, 0], c[:, None, 1] - grid_xy[None, :, 1]), axis=1)
         out.extend(c[world.is_free(c[:, 0], c[:, 1]) & (d >= min_distance)])
-    return np.asarray(out[:n])
+        if len(out) >= n:
+            return np.asarray(out[:n])
+    raise LinoLocError(f"single view: could not place {n} test views in world '{world.name}' "
+                       f"(free, {min_distance} m or more from the grid)")
 
 
 def run(setup: SingleViewSetup, progress: Callable[[int, int], None] | None = None) -> dict:

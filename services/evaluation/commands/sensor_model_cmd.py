@@ -1,5 +1,5 @@
 """`lino-loc eval sensor-model`: Fig. 5 of the paper, the sensor-model error (eq. 10) along a
-path through the simulated lab under tube, bulb and natural light, intensity only (J = 10)
+path through a simulated world (default: the lab) under tube, bulb and natural light, intensity only (J = 10)
 against intensity + disparity with disjunctive fusion (eq. 8, J = 5 + 5)."""
 
 from __future__ import annotations
@@ -41,6 +41,17 @@ def _table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def _path_box(text: str) -> tuple[float, float, float, float]:
+    """``--path-box XMIN,XMAX,YMIN,YMAX`` as four floats; LinoLocError naming the value."""
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != 4 or not (v[0] < v[1] and v[2] < v[3]):
+        raise LinoLocError(f"--path-box: want XMIN,XMAX,YMIN,YMAX with XMIN < XMAX and YMIN < YMAX, got {text!r}")
+    return v[0], v[1], v[2], v[3]
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.plot:
         pyplot()  # fails now, in one line naming the extra, rather than after the run
@@ -53,10 +64,11 @@ def _run(args: argparse.Namespace) -> int:
         raise LinoLocError("--lights: give at least one lighting setup")
     compare = tuple(x.strip() for x in args.compare.split(",") if x.strip() and x.strip() != args.preprocess)
     j_i = args.j - args.j // 2
+    box = _path_box(args.path_box) if args.path_box else None
     setup = SensorModelSetup(world=args.world, step=args.step, heading_step_deg=args.heading_step,
                              features=args.features, preprocess=args.preprocess, compare_preprocess=compare,
                              lights=lights, j=args.j, j_intensity=j_i, j_disparity=args.j - j_i,
-                             spacing=args.spacing, width=args.width, height=args.height,
+                             spacing=args.spacing, path_box=box, width=args.width, height=args.height,
                              size=(args.map_width, args.map_height), seed=args.seed, workers=args.workers,
                              cache=not args.no_cache)
     bar = Progress("sensor-model")
@@ -73,9 +85,10 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p = eval_sub.add_parser(
         "sensor-model",
         help="Fig. 5: sensor-model error (eq. 10) along a path, intensity vs. intensity + disparity",
-        description="Fig. 5 of the paper on the simulated lab: the error e of eq. 10 (metres) of the "
-        "sensor model's J map points along a path under tube, bulb and natural light, for intensity only "
-        "(J) and intensity + disparity with disjunctive fusion (eq. 8, J/2 + J/2).",
+        description="Fig. 5 of the paper on a simulated world (default: the lab): the error e of eq. 10 "
+        "(metres) of the sensor model's J map points along a path under tube, bulb and natural light, for "
+        "intensity only (J) and intensity + disparity with disjunctive fusion (eq. 8, J/2 + J/2). The path is "
+        "a closed loop derived from the world's free space (seeded by --seed) unless --path-box gives its box.",
     )
     p.add_argument("--world", default="lab")
     p.add_argument("--step", type=float, default=0.5, help="map grid step, metres")
@@ -89,11 +102,14 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--j", type=int, default=10,
                    help="J of the intensity-only model; the fused model takes J/2 + J/2 (default 10: 5 + 5)")
     p.add_argument("--spacing", type=float, default=0.3, help="distance between test poses along the path, m")
+    p.add_argument("--path-box", metavar="XMIN,XMAX,YMIN,YMAX", default=None,
+                   help="the test loop's box, metres (default: the longest free loop of the world's free space; "
+                   "the lab's loop before it was derived: 0.35,8.65,1.15,3.75)")
     p.add_argument("--width", type=int, default=320, help="rendered image width")
     p.add_argument("--height", type=int, default=240, help="rendered image height")
     p.add_argument("--map-width", type=int, default=80, help="working (map) image width")
     p.add_argument("--map-height", type=int, default=60, help="working (map) image height")
-    p.add_argument("--seed", type=int, default=0, help="seed of the survey's noise (test views: seed + 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the survey's noise (test views: seed + 1000) and of the test loop's lattice")
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write cached survey maps")
     p.add_argument("--plot", metavar="DIR", default=None, help="write fig5_sensor_model.png into DIR")
