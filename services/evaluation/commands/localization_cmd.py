@@ -93,7 +93,7 @@ def _tracking(args: argparse.Namespace) -> int:
     setup = TrackingSetup(world=args.world, features=args.features, preprocess=pre, lights=lights,
                           scene_changes=changes, duration=args.duration, rate=args.rate,
                           particles=args.particles, j=args.j, global_start=not args.no_global,
-                          compare_recovery=not args.no_recovery_comparison,
+                          compare_recovery=not args.no_recovery_comparison, kidnap=not args.no_kidnap,
                           switch_lights=_switch_lights(args.switch_lights, lights),
                           seed=args.seed, workers=args.workers)
     bar, cb = _progress()
@@ -193,6 +193,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-global", action="store_true", help="skip the runs from the uniform belief")
     p.add_argument("--no-recovery-comparison", action="store_true",
                    help="skip the runs with kidnap recovery switched off")
+    p.add_argument("--no-kidnap", action="store_true",
+                   help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
     p.add_argument("--seed", type=int, default=0)
