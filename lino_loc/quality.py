@@ -2,9 +2,10 @@
 
     quality = support x mass x exp(-(s_xy / S)^2 / 2) x (1 - min(1, doubt))
 
-- ``support``: the views' support of the belief (``lino_loc.view_fit.ViewFit.support``: the
-  recent hit share of each channel, scaled down where the channel's views are too
-  unreliable to confirm a pose; the weakest informative channel counts);
+- ``support``: the views' support of the belief (``lino_loc.view_fit.ViewFit.support``: 0
+  when a channel able to confirm a pose stops fitting, 0.3 to 1 when such channels confirm
+  it, more the more reliable they are and the better they fit, below 0.3 when no channel's
+  views can confirm a pose);
 - ``mass``: the dominant mode's share of the weight (``lino_loc.pose_estimate``);
 - s_xy: the square root of the largest eigenvalue of the mode's position covariance, S the
   convergence limit ``filter.estimate.converged_std_xy`` (a mode at the limit keeps 61 %);

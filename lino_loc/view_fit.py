@@ -39,9 +39,15 @@ A channel is INFORMATIVE when rho_c >= ``informative_hit_rate``. The verdict
 The filter reports ``tracking`` only for a confirmed verdict, ``lost`` for a misfit and
 ``global`` (converged, not confirmed) for uninformative views (``lino_loc.particle_filter``).
 
-:meth:`ViewFit.support` is the views' share of the estimate's ``quality``: per channel
-``q_c = f_c min(1, rho_c / informative_hit_rate)``; the smallest q_c of the informative
-channels when there is one, else the largest q_c (below 1 by construction). In [0, 1].
+:meth:`ViewFit.support` is the views' share of the estimate's ``quality``, in [0, 1], with R =
+``informative_hit_rate``:
+
+- a misfit: 0;
+- confirmed by informative channels: the smallest over them of
+  ``b + (1 - b) f_c clip((rho_c - R) / (1 - R), 0, 1)``, in [b, 1] (the more reliable the
+  channel and the better its recent fit, the higher), b = :data:`CONFIRMED_SUPPORT`;
+- no informative channel: the largest over the channels of ``b f_c rho_c / R``, below b
+  (views that cannot confirm a pose never give more support than views that do).
 
 Observations whose channels have no finite excess are ignored; a view with v_t = 0 (the
 camera did not move) changes nothing. How the defaults were chosen: docs/results.md,
@@ -68,6 +74,11 @@ from lino_loc.lost_detection import HIT_NATS, MEMORY, MEMORY_SUSPECT, WARMUP_VIE
 #: forgetting factor of the recent fit f_c, per independent view (about 3 views' memory: a
 #: kidnapped belief under the mapping light, rho about 0.95, misfits after two missed views)
 FIT_MEMORY = 0.7
+
+#: the least support of a belief the views confirm, the most of one they cannot (chosen with the
+#: error by quality band of the tracking evaluation on the lab, office and corridor worlds
+#: together, docs/results.md, "Honest states")
+CONFIRMED_SUPPORT = 0.3
 
 Verdict = Literal["confirmed", "uninformative", "misfit"]
 
@@ -164,15 +175,18 @@ class ViewFit:
     def support(self) -> float:
         """The views' support of the belief in [0, 1] (see the module docstring); 0 before
         any view."""
-        r = max(self.config.informative_hit_rate, 1e-9)
-        q = {id(ch): ch.fit * min(1.0, ch.rho / r)
-             for ch in self.channels.values()}
-        if not q:
+        if not self.channels:
             return 0.0
+        r = self.config.informative_hit_rate
         informative = self._informative()
-        if informative:
-            return min(q[id(ch)] for ch in informative)
-        return max(q.values())
+        if not informative:
+            b = CONFIRMED_SUPPORT
+            return max(b * ch.fit * min(1.0, ch.rho / max(r, 1e-9)) for ch in self.channels.values())
+        if any(ch.fit < self.config.min_fit * ch.rho for ch in informative):
+            return 0.0
+        span = max(1.0 - r, 1e-9)
+        b = CONFIRMED_SUPPORT
+        return min(b + (1.0 - b) * ch.fit * min(max((ch.rho - r) / span, 0.0), 1.0) for ch in informative)
 
     def hit_rates(self) -> dict[str, float]:
         """rho_c per channel seen so far."""
