@@ -40,7 +40,12 @@ noise; lower beta when the motion noise is large against the sensor model's kern
 States: ``global`` (the dominant mode is not converged, :class:`lino_loc.pose_estimate.
 EstimateConfig`, or it has converged but the views have not yet confirmed it, ``filter.lost.
 confirm_views``), ``tracking`` (converged and confirmed), ``lost`` (it had converged, and the
-lost test has since found the views contradicting the belief).
+lost test has since found the views contradicting the belief). The REPORTED state
+(:attr:`AuxiliaryParticleFilter.state`, the estimate's) is also ``tracking`` only while the
+views confirm the belief (``lino_loc.view_fit``, per channel of the observation): views
+that cannot confirm any pose report it ``global``, an informative channel whose views stop
+fitting ``lost``; the filter's own steps (what the lost test learns from) use the state
+above. The estimate's ``quality`` is ``lino_loc.quality``'s.
 
 Only the filter assigns its particles, weights and state; the components keep their own
 state and are told what happened.
@@ -376,6 +381,7 @@ class AuxiliaryParticleFilter:
         self.converged_once = True
         self._belief_converged = True
         self.lost_detector.confirm()  # a given pose needs no confirmation by the views
+        self.view_fit.trust()
         self._state = "tracking"
 
     def set_particles(self, particles: ArrayLike, log_weights: ArrayLike | None = None) -> None:

@@ -29,11 +29,11 @@ A channel is INFORMATIVE when rho_c >= ``informative_hit_rate``. The verdict
   rho_c (the recent fit of a right belief is about rho_c; a fit well below the channel's own
   rate is what a wrong one shows): evidence against the belief, also when another channel
   fits (two channels pointing at different places);
-- ``uninformative``: no channel is informative: the views cannot confirm any pose (not
-  before :data:`~lino_loc.lost_detection.WARMUP_VIEWS` views have been learnt since
-  :meth:`ViewFit.reset`, a new start or a pose given by the user, whose belief the lost test
-  alone judges until then; after an appearance change the rates are learnt again and the
-  views are uninformative until they have proved themselves);
+- ``uninformative``: no channel is informative: the views cannot confirm any pose (except
+  for a pose given by the user, :meth:`ViewFit.trust`, until
+  :data:`~lino_loc.lost_detection.WARMUP_VIEWS` views have been learnt: the lost test alone
+  judges it until then; a belief converged from a search, or one after an appearance change,
+  is uninformative until the views have proved themselves);
 - ``confirmed``: otherwise (an informative channel fits, and none misfits).
 
 The filter reports ``tracking`` only for a confirmed verdict, ``lost`` for a misfit and
@@ -120,11 +120,17 @@ class ViewFit:
     config: ViewFitConfig = field(default_factory=ViewFitConfig)
     channels: dict[str, _ChannelFit] = field(default_factory=dict, init=False)
     _learnt: float = field(default=0.0, init=False)  # views learnt since reset, no forgetting
+    _trusted: bool = field(default=False, init=False)
 
     def reset(self) -> None:
         """Forget everything (a new start)."""
         self.channels.clear()
         self._learnt = 0.0
+        self._trusted = False
+
+    def trust(self) -> None:
+        """The belief was given by the user: confirmed until WARMUP_VIEWS views are learnt."""
+        self._trusted = True
 
     def new_belief(self) -> None:
         """A new belief: its recent fit starts again (at 1); the rates stay."""
@@ -168,7 +174,8 @@ class ViewFit:
         """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring)."""
         informative = self._informative()
         if not informative:
-            return "uninformative" if self._learnt >= WARMUP_VIEWS else "confirmed"
+            warm = self._trusted and self._learnt < WARMUP_VIEWS
+            return "confirmed" if warm else "uninformative"
         misfit = any(ch.fit < self.config.min_fit * ch.rho for ch in informative)
         return "misfit" if misfit else "confirmed"
 

@@ -41,10 +41,14 @@ def test_unreliable_views_cannot_confirm() -> None:
     assert 0.0 < fit.support() < CONFIRMED_SUPPORT  # below any confirmed belief's
 
 
-def test_warmup_before_uninformative() -> None:
+def test_a_given_pose_is_trusted_for_the_warmup_views_only() -> None:
     fit = ViewFit()
     fit.update({"intensity": MISS}, 1.0)
-    assert fit.verdict() == "confirmed"  # the lost test alone judges a new start's first views
+    assert fit.verdict() == "uninformative"  # a belief from a search must prove itself
+    fit.reset()
+    fit.trust()
+    fit.update({"intensity": MISS}, 1.0)
+    assert fit.verdict() == "confirmed"  # the lost test alone judges a given pose's first views
     _teach(fit, {"intensity": [MISS]}, 5)
     assert fit.verdict() == "uninformative"
 
