@@ -72,7 +72,8 @@ def test_summary_share_within_five_seconds() -> None:
     assert s["median_s"] == pytest.approx(3.0) and s["max_s"] == pytest.approx(7.0)
     m = honesty_metrics(t, err, states)
     assert m["lost_delay_s"] == s
-    assert m["confident_wrong_fraction"] == pytest.approx((10 - 1 + 15 - 1 + 0) / 60 - 0 / 60 + 4 / 60)
+    assert m["tracking_fraction"] == pytest.approx(57 / 60)
+    assert m["confident_wrong_fraction"] == pytest.approx((9 + 14 + 4) / 60)
 
 
 def test_no_episode_gives_full_share_and_no_delays() -> None:

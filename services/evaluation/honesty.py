@@ -113,8 +113,10 @@ def lost_delay_summary(
 
 
 def honesty_metrics(stamps: ArrayLike, errors: ArrayLike, states: Sequence[str]) -> dict[str, Any]:
-    """``confident_wrong_fraction`` and ``lost_delay_s`` (:func:`lost_delay_summary`) of one run."""
+    """``tracking_fraction`` (the share of frames ``tracking``: what honesty costs),
+    ``confident_wrong_fraction`` and ``lost_delay_s`` (:func:`lost_delay_summary`) of one run."""
     return {
+        "tracking_fraction": float(np.mean([s == "tracking" for s in states])) if len(states) else 0.0,
         "confident_wrong_fraction": confident_wrong_fraction(errors, states),
         "lost_delay_s": lost_delay_summary(stamps, errors, states),
     }
