@@ -93,7 +93,7 @@ class ViewFitConfig(BaseModel):
         "confirm the pose and confirm it (false: the lost test alone decides)",
     )
     informative_hit_rate: float = Field(
-        0.6, ge=0.0, le=1.0, description="a channel whose learnt hit rate of a trusted belief "
+        0.55, ge=0.0, le=1.0, description="a channel whose learnt hit rate of a trusted belief "
         "is at least this can confirm a pose; below it its views say too little",
     )
     min_fit: float = Field(
