@@ -17,7 +17,8 @@ v_t (``lino_loc.lost_detection.independent_views``), two rates are kept per chan
 - rho_c, the hit rate of a trusted belief, learnt as the lost test learns its own:
   ``rho = (hits + 1/2) / (views + 1)`` (Jeffreys' prior), forgetting :data:`MEMORY` per view,
   :data:`MEMORY_SUSPECT` while the channel misfits, learnt only while ``learn`` (the belief
-  is trusted), forgotten (with the recent fit) when the appearance changed (lights switched). It says how able the
+  is trusted), forgotten (with the recent fit) when the appearance changed (lights switched),
+  except for a channel the light does not change (:data:`LIGHT_INVARIANT`). It says how able the
   channel's views are to confirm a pose here and under this light;
 - f_c, the recent fit: ``f <- a f + (1 - a) [hit]``, ``a = FIT_MEMORY ** v_t``, from 1 for a
   new belief (it fits until its views say otherwise).
@@ -80,6 +81,10 @@ FIT_MEMORY = 0.7
 #: together, docs/results.md, "Honest states")
 CONFIRMED_SUPPORT = 0.3
 
+#: channels whose views do not change with the light (the disparity of a stereo pair is its
+#: geometry's): an appearance change (``lino_loc.appearance_change``) leaves their rates alone
+LIGHT_INVARIANT = frozenset({"disparity"})
+
 Verdict = Literal["confirmed", "uninformative", "misfit"]
 
 
@@ -138,11 +143,14 @@ class ViewFit:
             ch.fit = 1.0
 
     def appearance_changed(self) -> None:
-        """The appearance changed (lights switched): the learnt rates and the recent fit
-        described the old light; both start again."""
-        for ch in self.channels.values():
-            ch.hits = ch.views = 0.0
-            ch.fit = 1.0
+        """The appearance changed (lights switched): the learnt rates and the recent fit of
+        every channel the light changes described the old light; both start again. The
+        channels in :data:`LIGHT_INVARIANT` (disparity: depth from the stereo pair's geometry)
+        keep theirs, and go on confirming the belief while the others relearn."""
+        for name, ch in self.channels.items():
+            if name not in LIGHT_INVARIANT:
+                ch.hits = ch.views = 0.0
+                ch.fit = 1.0
 
     def update(self, excess: Mapping[str, float], views: float, learn: bool = True) -> None:
         """One observation: per channel the predictive log-likelihood minus that channel's

@@ -101,6 +101,15 @@ def test_new_belief_and_appearance_change() -> None:
     assert fit.hit_rates() == {} and fit.support() == 0.0
 
 
+def test_a_light_switch_leaves_the_disparity_rates_alone() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT], "disparity": [HIT]}, 30)
+    fit.appearance_changed()
+    rates = fit.hit_rates()
+    assert rates["intensity"] == pytest.approx(0.5) and rates["disparity"] > 0.9
+    assert fit.verdict() == "confirmed"  # depth still confirms the belief while intensity relearns
+
+
 def test_config_bounds() -> None:
     with pytest.raises(ValueError):
         ViewFitConfig(min_fit=1.5)
