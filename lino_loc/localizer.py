@@ -167,7 +167,9 @@ class Localizer:
             # the filter's kidnap recovery trusts the observation only when the image is
             # familiar; the intensity channel says how familiar (see PoseMixture.novelty)
             fused = replace(fused, novelty=mixtures["intensity"].novelty)
-        return fused
+        # each channel's own mixture goes with the fused one: the filter tests the belief
+        # against every channel (lino_loc.view_fit)
+        return replace(fused, channels=mixtures)
 
     # ----------------------------------------------------------------- filter
 

@@ -40,7 +40,12 @@ noise; lower beta when the motion noise is large against the sensor model's kern
 States: ``global`` (the dominant mode is not converged, :class:`lino_loc.pose_estimate.
 EstimateConfig`, or it has converged but the views have not yet confirmed it, ``filter.lost.
 confirm_views``), ``tracking`` (converged and confirmed), ``lost`` (it had converged, and the
-lost test has since found the views contradicting the belief).
+lost test has since found the views contradicting the belief). The REPORTED state
+(:attr:`AuxiliaryParticleFilter.state`, the estimate's) is also ``tracking`` only while the
+views confirm the belief (``lino_loc.view_fit``, per channel of the observation): views
+that cannot confirm any pose report it ``global``, an informative channel whose views stop
+fitting ``lost``; the filter's own steps (what the lost test learns from) use the state
+above. The estimate's ``quality`` is ``lino_loc.quality``'s.
 
 Only the filter assigns its particles, weights and state; the components keep their own
 state and are told what happened.
@@ -85,8 +90,10 @@ from lino_loc.pose_estimate import (
     weighted_pose_stats,
 )
 from lino_loc.poses import wrap_angle
-from lino_loc.resampling import Resampler, get_resampler
+from lino_loc.quality import estimate_quality
+from lino_loc.resampling import Resampler, get_resampler, logsumexp
 from lino_loc.sensor_model import Bounds, PoseMixture
+from lino_loc.view_fit import ViewFit, ViewFitConfig
 from lino_loc.weights import NoFiniteWeightError, Weights
 
 FloatArray = NDArray[np.float64]
@@ -219,6 +226,7 @@ class FilterConfig(BaseModel):
     lost: LostConfig = Field(default_factory=LostConfig)
     recovery: RecoveryConfig = Field(default_factory=RecoveryConfig)
     appearance_change: AppearanceChangeConfig = Field(default_factory=AppearanceChangeConfig)
+    view_fit: ViewFitConfig = Field(default_factory=ViewFitConfig)
     estimate: EstimateConfig = Field(default_factory=EstimateConfig)
 
     @model_validator(mode="before")
@@ -253,6 +261,7 @@ class AuxiliaryParticleFilter:
         self._log_free: float | None = None
         c = self.config
         self.lost_detector = LostDetector(c.lost)
+        self.view_fit = ViewFit(c.view_fit)
         self.recovery = KidnapRecovery(c.recovery, motion_model, self._resample)
         self.appearance_watch = AppearanceChangeDetector() if c.appearance_change.enabled else None
         self.injected = 0  # particles injected or drawn as candidates by the last update
@@ -323,6 +332,7 @@ class AuxiliaryParticleFilter:
         self._recall_run: float | None = None  # hit views in a row of an unconfirmed recalled pose
         self.recovery.reset()
         self.lost_detector.reset()
+        self.view_fit.reset()
 
     def _uniform(self, n: int) -> FloatArray:
         """n poses uniform over the bounds (and the free space, by rejection) and all headings."""
@@ -371,6 +381,7 @@ class AuxiliaryParticleFilter:
         self.converged_once = True
         self._belief_converged = True
         self.lost_detector.confirm()  # a given pose needs no confirmation by the views
+        self.view_fit.trust()
         self._state = "tracking"
 
     def set_particles(self, particles: ArrayLike, log_weights: ArrayLike | None = None) -> None:
@@ -426,7 +437,7 @@ class AuxiliaryParticleFilter:
         loglik, ll = self._predict_and_weight(d, pan, mixture)
         self._watch_appearance(mixture.novelty, d)
         floor = outlier_floor(mixture)
-        self._test_lost(ll, floor, viewed_increment(d, pan_change))
+        self._test_lost(ll, floor, viewed_increment(d, pan_change), mixture, pan)
         self._recover(ll, floor, d, loglik, mixture, pan)
         self._resample_if_degenerate()
         self._update_state()
@@ -466,8 +477,11 @@ class AuxiliaryParticleFilter:
         ):
             self.recovery.relearn_averages()
             self.lost_detector.appearance_changed()
+            self.view_fit.appearance_changed()
 
-    def _test_lost(self, ll: float, floor: float, d: FloatArray) -> None:
+    def _test_lost(
+        self, ll: float, floor: float, d: FloatArray, mixture: PoseMixture, pan: float
+    ) -> None:
         """Step 3: the lost test on the likelihood's excess over the outlier floor; the hit
         rate is learnt from trusted beliefs (tracking, or lost: slowly), not from a search.
         ``d`` is the increment whose views count (``lino_loc.lost_detection.
@@ -482,7 +496,28 @@ class AuxiliaryParticleFilter:
                 self._recall_run += v
             elif v > 0.0:
                 self._recall_run = 0.0
-        self.lost_detector.update(excess, d, learn=self._state != "global")
+        learn = self._state != "global"
+        self.lost_detector.update(excess, d, learn=learn)
+        self.view_fit.update(self._channel_excess(mixture, excess, pan), independent_views(d), learn)
+
+    def _channel_excess(self, mixture: PoseMixture, excess: float, pan: float) -> dict[str, float]:
+        """Per channel of the observation (``PoseMixture.channels``), the channel's
+        log-likelihood of the view under the updated belief, log sum_i pi^i p_c(y |
+        camera_pose(x^i, pan)), minus the channel's outlier floor; with one channel (or none
+        named) the predictive log-likelihood's ``excess`` itself, under the channel's name
+        (``view`` when unnamed)."""
+        channels = mixture.channels
+        if not channels or len(channels) == 1:
+            return {next(iter(channels)) if channels else "view": excess}
+        x = self._particles
+        th = x[:, 2] + pan
+        c, s_ = np.cos(th), np.sin(th)
+        out = {}
+        for name, m in channels.items():
+            ll = float(logsumexp(self._weights.log + m.log_pdf_trig(x[:, 0], x[:, 1], c, s_)))
+            fl = outlier_floor(m)
+            out[name] = ll - fl if math.isfinite(fl) else ll
+        return out
 
     def _recover(
         self,
@@ -632,6 +667,7 @@ class AuxiliaryParticleFilter:
                 self._belief_converged = True
                 self.recovery.restart_averages()
                 self.lost_detector.new_belief()
+                self.view_fit.new_belief()
             self.converged_once = True
             # "tracking" once the views have confirmed the new belief; until then it is still
             # a search (a belief concentrated by one ambiguous image is often wrong)
@@ -653,7 +689,15 @@ class AuxiliaryParticleFilter:
 
     @property
     def state(self) -> State:
-        return self._state
+        """The reported state: the lost test's (``global`` / ``tracking`` / ``lost``), and a
+        ``tracking`` belief only while the views confirm it (``lino_loc.view_fit``): views
+        that cannot confirm any pose make it ``global``, an informative channel that stops
+        fitting makes it ``lost``. The filter's own steps use the lost test's state."""
+        s = self._state
+        if s != "tracking" or not self.config.view_fit.enabled:
+            return s
+        verdict = self.view_fit.verdict()
+        return "lost" if verdict == "misfit" else "global" if verdict == "uninformative" else s
 
     @property
     def appearance_changes(self) -> int:
@@ -663,13 +707,18 @@ class AuxiliaryParticleFilter:
     def estimate(self) -> Estimate:
         """Dominant mode: weighted mean (circular theta), covariance, ESS, state and doubt."""
         mean, cov, mass = self._dominant()
+        state = self.state
+        doubt = float(self.lost_detector.doubt)
         return Estimate(
             pose=mean,
             covariance=cov,
             ess=self.ess(),
             n_particles=self.n,
-            state=self._state,
+            state=state,
             cluster_weight=mass,
             log_likelihood=float(self.last_log_likelihood),
-            doubt=float(self.lost_detector.doubt),
+            doubt=doubt,
+            quality=estimate_quality(
+                self._state, cov, mass, doubt, self.view_fit.support(), self.config.estimate
+            ),
         )

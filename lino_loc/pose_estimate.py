@@ -275,7 +275,8 @@ class Estimate:
     observation, log p(y_t | y_1..t-1) (nan before the first one); ``doubt`` the evidence that
     the views no longer fit the belief as a fraction of the lost threshold (0 = they fit,
     1 = lost; ``lino_loc.lost_detection``); ``stamp`` the time of the frame it answers (s, None
-    when the caller gave none).
+    when the caller gave none); ``quality`` in [0, 1], higher meaning a smaller error
+    (``lino_loc.quality``; 0 when unknown).
     """
 
     pose: FloatArray  # (3,) robot pose
@@ -287,6 +288,7 @@ class Estimate:
     log_likelihood: float  # last observation's predictive log-likelihood (nan if none yet)
     doubt: float = 0.0
     stamp: float | None = None
+    quality: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (lists instead of arrays; a nan likelihood becomes None)."""
@@ -301,4 +303,5 @@ class Estimate:
             "log_likelihood": float(ll) if math.isfinite(ll) else None,
             "cluster_weight": float(self.cluster_weight),
             "doubt": float(self.doubt),
+            "quality": float(self.quality),
         }

@@ -53,6 +53,7 @@ Usage::
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from typing import Literal
@@ -195,6 +196,9 @@ class PoseMixture:
     # the map's own typical nearest-neighbour distance (NearestNeighbourSensorModel.novelty);
     # nan: unknown. The filter trusts the mixture for kidnap recovery only when it is small.
     novelty: float = field(default=math.nan, compare=False)
+    # the channels' own mixtures when this one fuses them (lino_loc.localizer: name -> mixture,
+    # also for a single channel); None: not known. The filter tests each against the belief.
+    channels: Mapping[str, PoseMixture] | None = field(default=None, compare=False)
 
     @classmethod
     def create(

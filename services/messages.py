@@ -242,6 +242,11 @@ class PoseMessage(_Published):
     latency_ms: NonNegative | None = Field(
         None, description="from the frame's capture to publication, milliseconds"
     )
+    quality: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(
+        None, description="how far to trust the pose, 0 (not at all) to 1; higher means a "
+        "smaller error (lino_loc.quality: the views' support of the belief, the mode's weight "
+        "and spread, the lost test's doubt; the error by quality band is in docs/results.md)",
+    )
 
     @classmethod
     def from_estimate(
@@ -271,6 +276,7 @@ class PoseMessage(_Published):
             n_particles=int(est.n_particles),
             dead_reckoning=dead_reckoning,
             latency_ms=max(0.0, (now - stamp) * 1000.0),
+            quality=min(max(float(est.quality), 0.0), 1.0) if math.isfinite(est.quality) else None,
         )
 
 

@@ -97,7 +97,7 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
             "v": 1, "stamp": 1763767825.412, "frame_id": "map", "seq": 1832,
             "pose": {"x": 3.412, "y": 1.105, "theta": 1.571},
             "covariance": _COV, "state": "tracking", "pan": -0.524, "ess": 612.4,
-            "n_particles": 1000, "dead_reckoning": False, "latency_ms": 21.7,
+            "n_particles": 1000, "dead_reckoning": False, "latency_ms": 21.7, "quality": 0.87,
         },
     ],
     "truth": [

@@ -112,6 +112,15 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
         assert 0.0 <= r["mean_error_m"] <= r["max_error_m"]
         assert r["mean_error_m"] <= r["ate_rmse_m"] + 1e-12 <= r["max_error_m"] + 2e-12  # mean <= RMS <= max
         assert "without_recovery" in r
+        for m in (r, r["global_start"], r["kidnap"]):
+            assert 0.0 <= m["confident_wrong_fraction"] <= m["tracking_fraction"] + 1e-12 <= 1.0 + 1e-12
+            assert m["lost_delay_s"]["episodes"] >= m["lost_delay_s"]["caught"] >= 0
+        assert r["kidnap"]["carried_m"] >= 0.0
+    rows = res["quality_table"]
+    assert [q["band"][0] for q in rows] == [0.0, 0.2, 0.4, 0.6, 0.8]
+    # every frame of every graded run: 2 lights x (known, uniform, kidnapped) + the light switch
+    n_kidnap = len(tracking.kidnap_frames(np.zeros((5, 3)))[0])
+    assert sum(q["frames"] for q in rows) == 2 * (5 + 5 + n_kidnap) + 5
     s_t, truth = read_tum(tmp_path / "traj" / "truth.tum")
     s_e, est = read_tum(tmp_path / "traj" / "tube.estimate.tum")
     np.testing.assert_allclose(s_t, [0.0, 0.5, 1.0, 1.5, 2.0], atol=1e-9)
@@ -122,6 +131,15 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
     sw = res["light_switch"]  # tube for frames 0-1, bulb for 2-4
     assert sw["lights"] == ["tube", "bulb"] and sw["switch_at_s"] == pytest.approx(1.0)
     assert 0.0 <= sw["lost_fraction_after"] <= 1.0 and sw["mean_error_after_m"] <= sw["max_error_after_m"]
+
+
+def test_kidnap_frames_jump_to_the_farthest_pose_of_the_last_quarter() -> None:
+    truth = np.zeros((16, 3))
+    truth[:, 0] = [0, 1, 2, 3, 4, 5, 6, 7, 6, 5, 7, 20, 7, 7, 1, 0]
+    frames, k = tracking.kidnap_frames(truth)
+    assert k == 8 and list(frames[:8]) == list(range(8))
+    # frames 10-13 are the candidates; frame 11 (x = 20) is the farthest from frame 7 (x = 7)
+    assert list(frames[8:]) == list(range(11, 16))
 
 
 def test_light_switch_metrics_on_a_known_run() -> None:

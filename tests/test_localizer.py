@@ -242,3 +242,28 @@ def test_public_surface_belief_appearance_changes_and_sensor_model() -> None:
     with pytest.raises(LinoLocError, match="no 'disparity' channel"):
         loc.sensor_model("disparity")
     assert est.doubt == loc.estimate().doubt and loc.estimate(7.0).stamp == 7.0
+
+
+def test_both_channels_are_tested_and_a_disparity_that_points_elsewhere_is_lost() -> None:
+    """Both channels fit a driven belief: 'tracking', each channel's hit rate learnt. Then the
+    disparity views come from a place 3 m away while the intensity views still fit the belief:
+    the channels point at different places, and the state says 'lost' within a few views."""
+    m, f_img, f_disp = _world(with_disparity=True)
+    loc = Localizer(m, _config())
+    rng = np.random.default_rng(0)
+    truth = np.array([0.8, 1.2, 0.0])
+    loc.set_pose(truth, np.diag([0.01, 0.01, 0.005]))
+    states, quality = [], []
+    for k in range(50):
+        d = np.array([0.1, 0.0, 0.01]) if k < 30 else np.array([0.1, 0.0, -0.01])
+        truth = compose(truth, d)
+        ghost = truth + np.array([3.0, 0.0, 2.0]) if k >= 30 else truth
+        img = f_img(truth)[0] + rng.normal(0, 0.02, 16)
+        disp = f_disp(ghost)[0] + rng.normal(0, 0.03, 10)
+        est = loc.update(d, 0.0, img, disp)
+        states.append(est.state)
+        quality.append(est.quality)
+    assert set(loc.filter.view_fit.hit_rates()) == {"intensity", "disparity"}
+    assert states[29] == "tracking" and quality[29] > 0.5
+    assert "lost" in states[30:45], states[30:]
+    assert min(quality[30:45]) < 0.3

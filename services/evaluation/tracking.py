@@ -55,6 +55,7 @@ from lino_loc.disparity import StereoConfig
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
 from services.evaluation.global_loc import localizer_config
+from services.evaluation.honesty import honesty_metrics, lost_delays, quality_table
 from services.evaluation.trajectories import trajectory_names, write_tum
 from services.evaluation.views import ViewSpec, build_sim_maps, render_frames
 
@@ -83,6 +84,7 @@ class TrackingSetup:
     converged_hold_s: float = 5.0
     global_start: bool = True
     compare_recovery: bool = True
+    kidnap: bool = True
     switch_lights: tuple[str, str] | None = ("tube", "bulb")
     width: int = 320
     height: int = 240
@@ -116,6 +118,15 @@ def converged_after(stamps: np.ndarray, err: np.ndarray, below: float, hold_s: f
     return None
 
 
+@dataclass
+class Run:
+    """One run of the filter: estimates (K, 3), states and the estimates' quality (K,)."""
+
+    est: np.ndarray
+    states: list[str]
+    quality: np.ndarray
+
+
 def run_filter(
     appearance_map: Any,
     cfg: LocalizerConfig,
@@ -124,25 +135,61 @@ def run_filter(
     start: np.ndarray | None,
     start_cov: np.ndarray | None,
     seed: Any,
+    frames: np.ndarray | None = None,
     disparities: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[str]]:
-    """Estimates (K, 3) and states of one run over the frames of ``plan`` (global if start is
-    None); ``disparities`` (K, h, w), when given, go with the images (the map's disparity
-    channel observes them)."""
+) -> Run:
+    """One run over the frames of ``plan`` (global if start is None); ``frames`` the indices
+    of the frames to use, in order (default: all), each with its own odometry increment;
+    ``disparities`` (K, h, w), when given, go with the images (the map's disparity channel
+    observes them)."""
     loc = Localizer(appearance_map, cfg, rng=np.random.default_rng(seed))
     if start is None:
         loc.start_global()
     else:
         loc.set_pose(start, start_cov)
+    idx = np.arange(len(plan)) if frames is None else np.asarray(frames)
     inc = plan.increments
-    est = np.zeros((len(plan), 3))
+    est = np.zeros((len(idx), 3))
+    quality = np.full(len(idx), np.nan)
     states: list[str] = []
-    for k in range(len(plan)):
+    for j, k in enumerate(idx):
         d = None if disparities is None else disparities[k]
-        e = loc.update(inc[k], 0.0, images[k], d, stamp=float(plan.stamps[k]))
-        est[k] = e.pose
+        e = loc.update(inc[k], 0.0, images[k], d, stamp=float(plan.stamps[j]))
+        est[j] = e.pose
+        quality[j] = e.quality
         states.append(e.state)
-    return est, states
+    return Run(est, states, quality)
+
+
+def kidnap_frames(truth: np.ndarray) -> tuple[np.ndarray, int]:
+    """The frames of a kidnapping on a drive with true poses ``truth`` (n, 3): the first half
+    of the drive, then the robot carried to the frame j of [5n/8, 7n/8) farthest from where it
+    was (the frames between skipped), then the rest of the drive from j; and the index (in the
+    new order) of the first frame after the kidnapping."""
+    n = truth.shape[0]
+    half, lo, hi = n // 2, (5 * n) // 8, max((7 * n) // 8, (5 * n) // 8 + 1)
+    dist = np.hypot(*(truth[lo:hi, :2] - truth[half - 1, :2]).T)
+    jump = lo + int(np.argmax(dist))
+    return np.concatenate([np.arange(half), np.arange(jump, n)]), half
+
+
+def kidnap_metrics(
+    plan: DrivePlan, run: Run, frames: np.ndarray, k_jump: int
+) -> dict[str, Any]:
+    """How the state answered a kidnapping at ``k_jump``: where and how far the robot was
+    carried, the honesty metrics of the run, and the delay of the episode of error above
+    1 m that the kidnapping starts (``lino_loc``'s state against the error after the jump)."""
+    truth = plan.truth[frames]
+    stamps = plan.stamps[: len(frames)]
+    err = position_errors(run.est, truth)
+    after = lost_delays(stamps[k_jump:], err[k_jump:], run.states[k_jump:])
+    return {
+        "kidnap_at_s": float(stamps[k_jump]),
+        "carried_m": float(np.hypot(*(truth[k_jump, :2] - truth[k_jump - 1, :2]))),
+        "mean_error_after_m": float(err[k_jump:].mean()),
+        **honesty_metrics(stamps, err, run.states),
+        "kidnap_episode": {"delay_s": after[0][0], "caught": after[0][1]} if after else None,
+    }
 
 
 def switch_metrics(
@@ -211,6 +258,7 @@ def run(
     by_pre: dict[str, dict[str, Any]] = {pre: {} for pre in setup.preprocess}
     switch = setup.switch_lights if setup.switch_lights and set(setup.switch_lights) <= set(setup.lights) else None
     kept: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    graded: list[tuple[Run, np.ndarray]] = []  # every run, for the quality table
     for light in setup.lights:
         cond = "+".join((light, *changes))
         spec = ViewSpec(world=setup.world, lighting=light, scene_changes=changes, width=setup.width,
@@ -223,11 +271,15 @@ def run(
             kept[light] = (images, disps)
         for pre in setup.preprocess:
             amap = maps[pre]
-            est, states = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disps)
+            run0 = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps)
+            est, states = run0.est, run0.states
             res: dict[str, Any] = {"condition": cond, **track_metrics(est, truth)}
             res["lost_fraction"] = float(np.mean([s == "lost" for s in states]))
+            res.update(honesty_metrics(plan.stamps, position_errors(est, truth), states))
+            graded.append((run0, truth))
             if setup.global_start:
-                gest, gstates = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2), disps)
+                grun = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2), disparities=disps)
+                gest, gstates = grun.est, grun.states
                 gerr = position_errors(gest, truth)
                 t_c = converged_after(plan.stamps, gerr, setup.converged_m, setup.converged_hold_s)
                 res["converged_after_s"] = t_c
@@ -236,14 +288,23 @@ def run(
                 )
                 first_tr = next((float(plan.stamps[k]) for k, s in enumerate(gstates) if s == "tracking"), None)
                 res["converged_state_after_s"] = first_tr
+                res["global_start"] = honesty_metrics(plan.stamps, gerr, gstates)
+                graded.append((grun, truth))
+            if setup.kidnap and len(plan) >= 4:
+                frames, k_jump = kidnap_frames(truth)
+                krun = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 3), frames=frames,
+                                  disparities=disps)
+                res["kidnap"] = kidnap_metrics(plan, krun, frames, k_jump)
+                graded.append((krun, truth[frames]))
             if setup.compare_recovery:
                 cfg0 = cfg.model_copy(deep=True)
                 cfg0.filter.recovery.max_inject_fraction = 0.0
-                est0, states0 = run_filter(amap, cfg0, plan, images, truth[0], start_cov, (setup.seed, 1), disps)
+                run_0 = run_filter(amap, cfg0, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps)
+                est0, states0 = run_0.est, run_0.states
                 res0: dict[str, Any] = {**track_metrics(est0, truth),
                                         "lost_fraction": float(np.mean([s == "lost" for s in states0]))}
                 if setup.global_start:
-                    gest0, _ = run_filter(amap, cfg0, plan, images, None, None, (setup.seed, 2), disps)
+                    gest0 = run_filter(amap, cfg0, plan, images, None, None, (setup.seed, 2), disparities=disps).est
                     res0["converged_after_s"] = converged_after(
                         plan.stamps, position_errors(gest0, truth), setup.converged_m, setup.converged_hold_s)
                 res["without_recovery"] = res0
@@ -266,8 +327,10 @@ def run(
         (ia, da), (ib, db) = kept[switch[0]], kept[switch[1]]
         images = np.concatenate([ia[:k_sw], ib[k_sw:]])
         disps = None if da is None or db is None else np.concatenate([da[:k_sw], db[k_sw:]])
-        est, states = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disps)
-        switched = {"lights": list(switch), **switch_metrics(plan.stamps, est, truth, states, k_sw)}
+        srun = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps)
+        switched = {"lights": list(switch), **switch_metrics(plan.stamps, srun.est, truth, srun.states, k_sw),
+                    **honesty_metrics(plan.stamps, position_errors(srun.est, truth), srun.states)}
+        graded.append((srun, truth))
         log.info("tracking, lights %s -> %s at %.0f s: mean error after %.3f m, lost after %.1f %%", *switch,
                  switched["switch_at_s"], switched["mean_error_after_m"], 100 * switched["lost_fraction_after"])
     result: dict[str, Any] = {
@@ -294,6 +357,11 @@ def run(
     }
     if switched is not None:
         result["light_switch"] = switched
+    result["quality_table"] = quality_table(
+        np.concatenate([r.quality for r, _ in graded]),
+        np.concatenate([position_errors(r.est, t) for r, t in graded]),
+        [s for r, _ in graded for s in r.states],
+    )
     if len(setup.preprocess) > 1:
         result["by_preprocess"] = by_pre
     return result

@@ -122,7 +122,7 @@ def _tracking(args: argparse.Namespace) -> int:
     setup = TrackingSetup(world=args.world, features=args.features, preprocess=pre, lights=lights,
                           scene_changes=changes, duration=args.duration, rate=args.rate,
                           particles=args.particles, j=args.j, global_start=not args.no_global,
-                          compare_recovery=not args.no_recovery_comparison,
+                          compare_recovery=not args.no_recovery_comparison, kidnap=not args.no_kidnap,
                           switch_lights=_switch_lights(args.switch_lights, lights),
                           seed=args.seed, workers=args.workers, channels=parse_channels(args.channels),
                           stereo=STEREO_PRESETS[args.stereo])
@@ -225,6 +225,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-global", action="store_true", help="skip the runs from the uniform belief")
     p.add_argument("--no-recovery-comparison", action="store_true",
                    help="skip the runs with kidnap recovery switched off")
+    p.add_argument("--no-kidnap", action="store_true",
+                   help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
     add_channels_option(p)

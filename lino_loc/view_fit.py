@@ -1,0 +1,208 @@
+"""Do the views confirm the belief? Per channel: how able its views are to confirm a pose, and
+how well the recent ones fit.
+
+The lost test (``lino_loc.lost_detection``) looks for evidence AGAINST the belief. Where the
+views say little (intensity under a light the map was not made in) a wrong belief collects
+none: it hits about as often as a right one, and the test stays quiet while the estimate is
+metres off. This component asks the other question, whether there is evidence FOR the belief,
+and it asks it per channel of the observation (intensity; disparity too when the map has
+it), so that a channel the light does not change can confirm a pose the other cannot, and a
+channel whose views stop fitting is heard even when the other one fits.
+
+Each update gives, per channel c, a hit or a miss of the belief: the channel's predictive
+log-likelihood of the view exceeds the channel's outlier floor by
+``lino_loc.lost_detection.HIT_NATS`` (as in the lost test). Counted per independent view
+v_t (``lino_loc.lost_detection.independent_views``), two rates are kept per channel:
+
+- rho_c, the hit rate of a trusted belief, learnt as the lost test learns its own:
+  ``rho = (hits + 1/2) / (views + 1)`` (Jeffreys' prior), forgetting :data:`MEMORY` per view,
+  :data:`MEMORY_SUSPECT` while the channel misfits, learnt only while ``learn`` (the belief
+  is trusted), forgotten (with the recent fit) when the appearance changed (lights switched),
+  except for a channel the light does not change (:data:`LIGHT_INVARIANT`). It says how able the
+  channel's views are to confirm a pose here and under this light;
+- f_c, the recent fit: ``f <- a f + (1 - a) [hit]``, ``a = FIT_MEMORY ** v_t``, from 1 for a
+  new belief (it fits until its views say otherwise).
+
+A channel is INFORMATIVE when rho_c >= ``informative_hit_rate``. The verdict
+(:meth:`ViewFit.verdict`):
+
+- ``misfit``: some informative channel's recent views stop fitting, f_c < ``min_fit`` x
+  rho_c (the recent fit of a right belief is about rho_c; a fit well below the channel's own
+  rate is what a wrong one shows): evidence against the belief, also when another channel
+  fits (two channels pointing at different places);
+- ``uninformative``: no channel is informative: the views cannot confirm any pose (except
+  for a pose given by the user, :meth:`ViewFit.trust`, until
+  :data:`~lino_loc.lost_detection.WARMUP_VIEWS` views have been learnt: the lost test alone
+  judges it until then; a belief converged from a search, or one after an appearance change,
+  is uninformative until the views have proved themselves);
+- ``confirmed``: otherwise (an informative channel fits, and none misfits).
+
+The filter reports ``tracking`` only for a confirmed verdict, ``lost`` for a misfit and
+``global`` (converged, not confirmed) for uninformative views (``lino_loc.particle_filter``).
+
+:meth:`ViewFit.support` is the views' share of the estimate's ``quality``, in [0, 1], with R =
+``informative_hit_rate``:
+
+- a misfit: 0;
+- confirmed by informative channels: the smallest over them of
+  ``b + (1 - b) f_c clip((rho_c - R) / (1 - R), 0, 1)``, in [b, 1] (the more reliable the
+  channel and the better its recent fit, the higher), b = :data:`CONFIRMED_SUPPORT`;
+- no informative channel: the largest over the channels of ``b f_c rho_c / R``, below b
+  (views that cannot confirm a pose never give more support than views that do).
+
+Observations whose channels have no finite excess are ignored; a view with v_t = 0 (the
+camera did not move) changes nothing. How the defaults were chosen: docs/results.md,
+"Honest states".
+
+Usage::
+
+    fit = ViewFit()
+    fit.update({"intensity": ll_i - floor_i, "disparity": ll_d - floor_d}, views=v, learn=True)
+    fit.verdict()   # "confirmed" | "uninformative" | "misfit"
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from lino_loc.lost_detection import HIT_NATS, MEMORY, MEMORY_SUSPECT, WARMUP_VIEWS
+
+#: forgetting factor of the recent fit f_c, per independent view (about 3 views' memory: a
+#: kidnapped belief under the mapping light, rho about 0.95, misfits after two missed views)
+FIT_MEMORY = 0.7
+
+#: the least support of a belief the views confirm, the most of one they cannot (chosen with the
+#: error by quality band of the tracking evaluation on the lab, office and corridor worlds
+#: together, docs/results.md, "Honest states")
+CONFIRMED_SUPPORT = 0.3
+
+#: channels whose views do not change with the light (the disparity of a stereo pair is its
+#: geometry's): an appearance change (``lino_loc.appearance_change``) leaves their rates alone
+LIGHT_INVARIANT = frozenset({"disparity"})
+
+Verdict = Literal["confirmed", "uninformative", "misfit"]
+
+
+class ViewFitConfig(BaseModel):
+    """When the views confirm the belief, ``filter.view_fit``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="report 'tracking' only while some channel's views are able to "
+        "confirm the pose and confirm it (false: the lost test alone decides)",
+    )
+    informative_hit_rate: float = Field(
+        0.55, ge=0.0, le=1.0, description="a channel whose learnt hit rate of a trusted belief "
+        "is at least this can confirm a pose; below it its views say too little",
+    )
+    min_fit: float = Field(
+        0.7, ge=0.0, le=1.0, description="an informative channel whose recent hit share falls "
+        "below this share of its learnt hit rate no longer fits the belief: 'lost'",
+    )
+
+
+@dataclass
+class _ChannelFit:
+    hits: float = 0.0
+    views: float = 0.0
+    fit: float = 1.0  # f_c of the current belief
+
+    @property
+    def rho(self) -> float:
+        return (self.hits + 0.5) / (self.views + 1.0)
+
+
+@dataclass
+class ViewFit:
+    """Per-channel hit rates and recent fit of the belief (see the module docstring)."""
+
+    config: ViewFitConfig = field(default_factory=ViewFitConfig)
+    channels: dict[str, _ChannelFit] = field(default_factory=dict, init=False)
+    _learnt: float = field(default=0.0, init=False)  # views learnt since reset, no forgetting
+    _trusted: bool = field(default=False, init=False)
+
+    def reset(self) -> None:
+        """Forget everything (a new start)."""
+        self.channels.clear()
+        self._learnt = 0.0
+        self._trusted = False
+
+    def trust(self) -> None:
+        """The belief was given by the user: confirmed until WARMUP_VIEWS views are learnt."""
+        self._trusted = True
+
+    def new_belief(self) -> None:
+        """A new belief: its recent fit starts again (at 1); the rates stay."""
+        for ch in self.channels.values():
+            ch.fit = 1.0
+
+    def appearance_changed(self) -> None:
+        """The appearance changed (lights switched): the learnt rates and the recent fit of
+        every channel the light changes described the old light; both start again. The
+        channels in :data:`LIGHT_INVARIANT` (disparity: depth from the stereo pair's geometry)
+        keep theirs, and go on confirming the belief while the others relearn."""
+        for name, ch in self.channels.items():
+            if name not in LIGHT_INVARIANT:
+                ch.hits = ch.views = 0.0
+                ch.fit = 1.0
+
+    def update(self, excess: Mapping[str, float], views: float, learn: bool = True) -> None:
+        """One observation: per channel the predictive log-likelihood minus that channel's
+        outlier floor (nats; nan: the channel saw nothing this frame), ``views`` in [0, 1] its
+        share of an independent view, ``learn``: the belief is trusted."""
+        v = min(max(float(views), 0.0), 1.0)
+        if v <= 0.0:
+            return
+        a = FIT_MEMORY**v
+        if learn:
+            self._learnt += v
+        for name, x in excess.items():
+            if math.isnan(x):
+                continue
+            ch = self.channels.setdefault(name, _ChannelFit())
+            hit = 1.0 if x > HIT_NATS else 0.0
+            suspect = ch.fit < self.config.min_fit * ch.rho
+            ch.fit = a * ch.fit + (1.0 - a) * hit
+            if learn:
+                m = (MEMORY_SUSPECT if suspect else MEMORY) ** v
+                ch.hits = m * ch.hits + v * hit
+                ch.views = m * ch.views + v
+
+    def _informative(self) -> list[_ChannelFit]:
+        r = self.config.informative_hit_rate
+        return [ch for ch in self.channels.values() if ch.rho >= r]
+
+    def verdict(self) -> Verdict:
+        """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring)."""
+        informative = self._informative()
+        if not informative:
+            warm = self._trusted and self._learnt < WARMUP_VIEWS
+            return "confirmed" if warm else "uninformative"
+        misfit = any(ch.fit < self.config.min_fit * ch.rho for ch in informative)
+        return "misfit" if misfit else "confirmed"
+
+    def support(self) -> float:
+        """The views' support of the belief in [0, 1] (see the module docstring); 0 before
+        any view."""
+        if not self.channels:
+            return 0.0
+        r = self.config.informative_hit_rate
+        informative = self._informative()
+        if not informative:
+            b = CONFIRMED_SUPPORT
+            return max(b * ch.fit * min(1.0, ch.rho / max(r, 1e-9)) for ch in self.channels.values())
+        if any(ch.fit < self.config.min_fit * ch.rho for ch in informative):
+            return 0.0
+        span = max(1.0 - r, 1e-9)
+        b = CONFIRMED_SUPPORT
+        return min(b + (1.0 - b) * ch.fit * min(max((ch.rho - r) / span, 0.0), 1.0) for ch in informative)
+
+    def hit_rates(self) -> dict[str, float]:
+        """rho_c per channel seen so far."""
+        return {name: ch.rho for name, ch in self.channels.items()}

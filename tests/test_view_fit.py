@@ -1,0 +1,132 @@
+"""Do the views confirm the belief (lino_loc.view_fit), the estimate's quality (lino_loc.quality),
+and the filter's reported state with them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lino_loc.quality import estimate_quality
+from lino_loc.view_fit import CONFIRMED_SUPPORT, ViewFit, ViewFitConfig
+
+HIT, MISS = 3.0, 0.0  # excess over the outlier floor, nats (a hit is above HIT_NATS = 1)
+
+
+def _teach(fit: ViewFit, pattern: dict[str, list[float]], repeats: int) -> None:
+    n = len(next(iter(pattern.values())))
+    for _ in range(repeats):
+        for k in range(n):
+            fit.update({c: p[k] for c, p in pattern.items()}, views=1.0, learn=True)
+
+
+def test_reliable_views_confirm_and_two_misses_make_a_misfit() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT]}, 30)
+    assert fit.hit_rates()["intensity"] > 0.9 and fit.verdict() == "confirmed"
+    assert fit.support() > 0.95
+    fit.update({"intensity": MISS}, 1.0)
+    assert fit.verdict() == "confirmed"  # one miss: f = 0.7 (the limit is 0.7 x rho, rho < 1)
+    fit.update({"intensity": MISS}, 1.0)
+    assert fit.verdict() == "misfit" and fit.support() < 0.5
+
+
+def test_unreliable_views_cannot_confirm() -> None:
+    """A channel whose trusted belief hits one view in five (intensity under another light)."""
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT, MISS, MISS, MISS, MISS]}, 10)
+    assert fit.hit_rates()["intensity"] < 0.3
+    assert fit.verdict() == "uninformative"
+    assert 0.0 < fit.support() < CONFIRMED_SUPPORT  # below any confirmed belief's
+
+
+def test_a_given_pose_is_trusted_for_the_warmup_views_only() -> None:
+    fit = ViewFit()
+    fit.update({"intensity": MISS}, 1.0)
+    assert fit.verdict() == "uninformative"  # a belief from a search must prove itself
+    fit.reset()
+    fit.trust()
+    fit.update({"intensity": MISS}, 1.0)
+    assert fit.verdict() == "confirmed"  # the lost test alone judges a given pose's first views
+    _teach(fit, {"intensity": [MISS]}, 5)
+    assert fit.verdict() == "uninformative"
+
+
+def test_a_second_channel_confirms_where_the_first_cannot() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT, MISS, MISS, MISS, MISS], "disparity": [HIT] * 5}, 10)
+    assert fit.verdict() == "confirmed"
+    assert fit.support() > 0.9  # the weakest INFORMATIVE channel counts
+
+
+def test_channels_that_disagree_are_evidence() -> None:
+    """Both channels reliable; the disparity views stop fitting while intensity still does."""
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT], "disparity": [HIT]}, 30)
+    for _ in range(2):
+        fit.update({"intensity": HIT, "disparity": MISS}, 1.0)
+    assert fit.verdict() == "misfit"
+
+
+def test_a_channel_without_a_view_this_frame_is_left_alone() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT], "disparity": [HIT]}, 30)
+    for _ in range(5):
+        fit.update({"intensity": HIT, "disparity": math.nan}, 1.0)
+    assert fit.verdict() == "confirmed"
+
+
+def test_views_that_are_not_new_change_nothing() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT]}, 30)
+    before = (fit.hit_rates(), fit.verdict(), fit.support())
+    for _ in range(50):
+        fit.update({"intensity": MISS}, 0.0)
+    assert (fit.hit_rates(), fit.verdict(), fit.support()) == before
+
+
+def test_new_belief_and_appearance_change() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT]}, 30)
+    fit.update({"intensity": MISS}, 1.0)
+    fit.update({"intensity": MISS}, 1.0)
+    assert fit.verdict() == "misfit"
+    fit.new_belief()  # the rates stay, the fit starts again
+    assert fit.verdict() == "confirmed" and fit.hit_rates()["intensity"] > 0.8
+    fit.appearance_changed()  # the rates described the old light
+    assert fit.hit_rates()["intensity"] == pytest.approx(0.5)
+    assert fit.verdict() == "uninformative"  # the views must prove themselves again
+    fit.reset()
+    assert fit.hit_rates() == {} and fit.support() == 0.0
+
+
+def test_a_light_switch_leaves_the_disparity_rates_alone() -> None:
+    fit = ViewFit()
+    _teach(fit, {"intensity": [HIT], "disparity": [HIT]}, 30)
+    fit.appearance_changed()
+    rates = fit.hit_rates()
+    assert rates["intensity"] == pytest.approx(0.5) and rates["disparity"] > 0.9
+    assert fit.verdict() == "confirmed"  # depth still confirms the belief while intensity relearns
+
+
+def test_config_bounds() -> None:
+    with pytest.raises(ValueError):
+        ViewFitConfig(min_fit=1.5)
+    with pytest.raises(ValueError):
+        ViewFitConfig(unknown=1)
+
+
+def test_quality_factors() -> None:
+    cov = np.diag([0.01, 0.01, 0.01])
+    q = estimate_quality("tracking", cov, 1.0, 0.0, 1.0)
+    assert q == pytest.approx(math.exp(-0.5 * 0.04))
+    assert estimate_quality("tracking", cov, 0.5, 0.0, 1.0) == pytest.approx(q / 2)
+    assert estimate_quality("tracking", cov, 1.0, 0.5, 1.0) == pytest.approx(q / 2)
+    assert estimate_quality("tracking", cov, 1.0, 3.0, 1.0) == 0.0
+    assert estimate_quality("lost", cov, 1.0, 0.0, 1.0) == 0.0
+    wide = estimate_quality("global", np.diag([4.0, 4.0, 1.0]), 1.0, 0.0, 1.0)
+    assert wide < 0.01
+    assert estimate_quality("tracking", cov * math.nan, 1.0, 0.0, 1.0) == 0.0
+    for args in ((2.0, -1.0, 7.0), (-1.0, 0.0, -3.0)):
+        assert 0.0 <= estimate_quality("tracking", cov, *args) <= 1.0
