@@ -55,10 +55,10 @@ def parse_channels(text: str) -> tuple[str, ...]:
     return names
 
 
-def add_channels_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--channels", default="intensity", type=str,
+def add_channels_option(p: argparse.ArgumentParser, default: str = "intensity") -> None:
+    p.add_argument("--channels", default=default, type=str,
                    help="the map's channels: intensity, or intensity,disparity (the survey's stereo "
-                   "pairs through the product's matcher, fused by eq. 8 with [localizer.fusion])")
+                   f"pairs through the product's matcher, fused by eq. 8 with [localizer.fusion]; default {default})")
     p.add_argument("--stereo", default="bm", choices=tuple(STEREO_PRESETS),
                    help="the disparity channel's matcher: bm (StereoBM at the camera's size, the product's), "
                    "bm/2 (at half size), sgbm, sgbm/2 (semi-global)")
@@ -205,7 +205,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_global)
 
-    from services.evaluation.tracking import DEFAULT_CHANGES, DEFAULT_PREPROCESS
+    from services.evaluation.tracking import DEFAULT_CHANGES, DEFAULT_CHANNELS, DEFAULT_PREPROCESS
 
     p = eval_sub.add_parser("tracking", help="a drive through the lab under other light and scene changes")
     p.add_argument("--world", default="lab")
@@ -229,7 +229,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
-    add_channels_option(p)
+    add_channels_option(p, ",".join(DEFAULT_CHANNELS))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
