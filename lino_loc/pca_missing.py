@@ -412,13 +412,50 @@ def _pairwise_covariance(data: _EMData) -> F64:
     return np.asarray(S)
 
 
+def _solve_pixels(A_packed: NDArray, B: F64, seen: NDArray[np.bool_], d1: int) -> F64:
+    """The (D, d1) solutions theta_j of the per-pixel (d1 x d1) normal equations (packed
+    upper triangles ``A_packed``, right-hand sides B), by blocks of pixels; 0 for pixels
+    never observed."""
+    iu1 = _triu(d1)
+    theta = np.zeros((B.shape[0], d1))
+    for lo in range(0, B.shape[0], _SOLVE_BLOCK):
+        sl = slice(lo, lo + _SOLVE_BLOCK)
+        A = _unpack_sym(np.asarray(A_packed[sl], dtype=np.float64), d1, iu1)
+        A[~seen[sl]] = np.eye(d1)
+        theta[sl] = np.linalg.solve(A, B[sl, :, None])[:, :, 0]
+    return theta
+
+
+def _px_fold(
+    W: F64, mu: F64, Ez: F64, S_sum: F64, ps: _PriorStats | None, data: _EMData
+) -> tuple[F64, F64]:
+    """PX-EM (Liu, Rubin & Wu 1998): the latent mean m and covariance C of the expanded model
+    z ~ N(m, C), estimated from the E-step moments of the samples with data (Ez, the sum
+    S_sum of their E[z z^T]) and, for C, the prior's centred pseudo-samples; mapped back to
+    z ~ N(0, I) by ``mu += W m``, ``W <- W C^1/2``. Any square root of C gives the same
+    model; the symmetric one turns the latent coordinates the least, so successive iterates
+    of W differ only by what changes the model (which the SQUAREM extrapolation relies on).
+    Unchanged if C is not positive definite."""
+    n = Ez.shape[0]
+    m_z = Ez.sum(0) / n
+    C = S_sum / n - np.outer(m_z, m_z)
+    if ps is not None:
+        nu = data.prior.nu  # type: ignore[union-attr]
+        C = (n * C + nu * ps.Ezz) / (n + nu)
+    evals, evecs = np.linalg.eigh(C)
+    if evals[0] <= 0:
+        return W, mu
+    return W @ ((evecs * np.sqrt(evals)) @ evecs.T), mu + W @ m_z
+
+
 def _em_step(
     W: F64, mu: F64, sigma2: float, data: _EMData, px: bool = True
 ) -> tuple[F64, F64, float, float]:
     """One EM (or PX-EM) iteration: the E-step at (W, mu, sigma2), then the M-step.
 
-    Returns the new (W, mu, sigma2) and the observed-data log-likelihood per observed value
-    at the *input* parameters.
+    Returns the new (W, mu, sigma2) and the objective (log posterior per observed value and
+    pseudo-value) at the *input* parameters. ``px``: with the parameter-expanded fold (if
+    the fit uses it).
     """
     X0, maskf = data.X0, data.maskf
     n = X0.shape[0]
@@ -451,34 +488,15 @@ def _em_step(
         A_packed = A_packed.astype(np.float64)
         A_packed += nu * _pack_sym(np.pad(ps.Ezz, ((0, 1), (0, 1)))[None], iu1)
     B[~seen] = 0.0
-    theta = np.zeros((X0.shape[1], d1))
-    for lo in range(0, X0.shape[1], _SOLVE_BLOCK):  # (d1 x d1) systems, by blocks of pixels
-        sl = slice(lo, lo + _SOLVE_BLOCK)
-        A = _unpack_sym(np.asarray(A_packed[sl], dtype=np.float64), d1, iu1)
-        A[~seen[sl]] = np.eye(d1)
-        theta[sl] = np.linalg.solve(A, B[sl, :, None])[:, :, 0]
+    theta = _solve_pixels(A_packed, B, seen, d1)
     del A_packed, St
     W_new = theta[:, :d]
     mu_new = theta[:, d].copy()
     xsq = data.xsq_total + (data.prior.nu * data.prior.trace if ps is not None else 0.0)  # type: ignore[union-attr]
     sse = xsq - float(np.einsum("ji,ji->", theta, B))
     sigma2_new = max(sse / _n_values(data), data.sigma2_floor)
-    n_active = int(active.sum())
-    if px and data.px_em and n_active > 0:
-        # PX-EM (Liu, Rubin & Wu 1998): estimate the latent mean m and covariance C in the
-        # expanded model z ~ N(m, C), then map back to z ~ N(0, I): mu += W m, W <- W C^1/2.
-        # Any square root of C gives the same model; the symmetric one turns the latent
-        # coordinates the least, so successive iterates of W differ only by what changes
-        # the model (which the SQUAREM extrapolation relies on).
-        m_z = Ez[active].sum(0) / n_active
-        C = S_active / n_active - np.outer(m_z, m_z)
-        if ps is not None:  # the prior's pseudo-samples are centred: they inform C only
-            nu = data.prior.nu  # type: ignore[union-attr]
-            C = (n_active * C + nu * ps.Ezz) / (n_active + nu)
-        evals, evecs = np.linalg.eigh(C)
-        if evals[0] > 0:
-            mu_new = mu_new + W_new @ m_z
-            W_new = W_new @ ((evecs * np.sqrt(evals)) @ evecs.T)
+    if px and data.px_em and active.any():
+        W_new, mu_new = _px_fold(W_new, mu_new, Ez[active], S_active, ps, data)
     return np.ascontiguousarray(W_new), mu_new, sigma2_new, ll_obs
 
 
@@ -516,11 +534,9 @@ def fit_pca_missing(
     removes plain EM's very slow convergence of the scale of W when values are missing.
 
     ``accelerate`` (default on) wraps the (PX-)EM map in SQUAREM (Varadhan & Roland 2008,
-    scheme S3 with the adaptive step bound and monotonicity safeguard of their reference
-    implementation): every two EM steps, the parameters are extrapolated along the EM
-    direction and one EM step is taken from there; the extrapolation is kept only if its
-    objective is not below that of the second EM step's starting point, otherwise the
-    plain EM iterate is used. The fixed points are those of EM, and the recorded objective
+    scheme S3, adaptive step bound): every two EM steps the parameters are extrapolated
+    along the EM direction, kept only if the objective does not drop (see
+    :func:`_squarem_step`). The fixed points are those of EM; the recorded objective
     (``log_likelihood``, at the accepted iterates) never decreases. Deterministic. The
     (N, D) work arrays are one copy of the data's observed columns in ``dtype`` plus its
     mask, and with the prior the (D, D) matrix S. LinoLocError for data that is not 2-D or
@@ -536,21 +552,23 @@ def fit_pca_missing(
     if not cols.all():
         a = a[:, cols]
     data, mu0, colcount = _centred_data(a, dtype, min_sigma2, px_em)
-    if prior_weight > 0.0:
-        S = _pairwise_covariance(data)
-        data.prior = _CovPrior(nu=prior_weight * float(data.active.sum()), S=S, trace=float(np.trace(S)))
-        W, sigma2 = _prior_mode(S, d, data.sigma2_floor)
-    else:
-        W, sigma2 = _initial_params(data, d, rng)
+    W, sigma2 = _start(data, d, prior_weight, rng)
     mu = np.zeros(data.X0.shape[1])
     fit = _run_em(W, mu, sigma2, data, max_iter, tol, subspace_tol, accelerate)
     if not fit.converged:
-        log.info(
-            "EM-PCA stopped after max_iter=%d iterations without reaching the tolerance",
-            fit.n_iter,
-        )
+        log.info("EM-PCA stopped after max_iter=%d iterations without reaching the tolerance", fit.n_iter)
     model = _fitted_model(fit, mu0, data.seen, colcount)
     return model if cols.all() else _expanded(model, cols, full_d)
+
+
+def _start(data: _EMData, d: int, prior_weight: float, rng: np.random.Generator) -> tuple[F64, float]:
+    """Set up the prior (``prior_weight`` > 0) in ``data`` and return the start (W, sigma^2):
+    the prior's mode, or without a prior :func:`_initial_params`."""
+    if prior_weight <= 0.0:
+        return _initial_params(data, d, rng)
+    S = _pairwise_covariance(data)
+    data.prior = _CovPrior(nu=prior_weight * float(data.active.sum()), S=S, trace=float(np.trace(S)))
+    return _prior_mode(S, d, data.sigma2_floor)
 
 
 def _prior_mode(S: F64, d: int, floor: float) -> tuple[F64, float]:
