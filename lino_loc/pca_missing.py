@@ -402,14 +402,18 @@ def _pairwise_covariance(data: _EMData) -> F64:
     from scipy.linalg.blas import dsyrk, ssyrk
 
     syrk = ssyrk if data.X0.dtype == np.float32 else dsyrk
-    S = syrk(1.0, data.X0, trans=1, lower=0)
+    S = syrk(1.0, data.X0, trans=1, lower=0)  # upper triangles, Fortran order
     C = syrk(1.0, data.maskf, trans=1, lower=0)
-    np.divide(S, C, out=S, where=C > 0.5)
-    S[C <= 0.5] = 0.0
+    pairs = C > 0.5
+    np.divide(S, C, out=S, where=pairs)
     del C
-    S = np.triu(S)
-    S += np.triu(S, 1).T
-    return np.asarray(S)
+    S[~pairs] = 0.0
+    del pairs
+    for lo in range(0, S.shape[0], _SOLVE_BLOCK):  # the lower triangle from the upper, by blocks
+        sl = slice(lo, lo + _SOLVE_BLOCK)
+        S[sl, :lo] = S[:lo, sl].T
+        S[sl, sl] = np.triu(S[sl, sl]) + np.triu(S[sl, sl], 1).T
+    return np.ascontiguousarray(S)
 
 
 def _solve_pixels(A_packed: NDArray, B: F64, seen: NDArray[np.bool_], d1: int) -> F64:

@@ -289,3 +289,20 @@ def test_prior_weight_is_checked():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(LinoLocError, match="prior_weight"):
             fit_pca_missing(x, 2, prior_weight=bad)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_pairwise_covariance_is_the_available_case_covariance(dtype):
+    from lino_loc import pca_missing as pm
+
+    rng = np.random.default_rng(12)
+    x = rng.normal(size=(40, 1100))  # more pixels than one block of the symmetrisation
+    x[rng.random(x.shape) < 0.5] = np.nan
+    a, _ = pm._checked_data(x, 3, dtype)
+    data, _, _ = pm._centred_data(a, dtype, 1e-9, True)
+    S = pm._pairwise_covariance(data)
+    m = np.isfinite(x)
+    xc = np.where(m, x - np.nanmean(x, 0), 0.0)
+    want = (xc.T @ xc) / np.maximum(m.T.astype(float) @ m, 1.0)
+    assert np.allclose(S, want, atol=1e-5 if dtype == np.float32 else 1e-12)
+    assert np.array_equal(S, S.T)
