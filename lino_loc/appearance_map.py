@@ -721,31 +721,32 @@ def build_intensity_channel(
     return intensity_channel_from_vectors(X, preprocess, size, n_features, virtual=virtual, method=method, seed=seed)
 
 
-def build_disparity_channel(
-    dataset: Dataset,
-    n_features: int = DEFAULT_FEATURES,
-    size: tuple[int, int] = DEFAULT_SIZE,
-    progress: ProgressFn | None = None,
-    *,
-    min_valid_fraction: float = 0.25,
-    seed: int = 0,
-    max_iter: int = 100,
-    virtual: VirtualHeadings | None = None,
-) -> ChannelMap:
-    """The disparity channel (section 5): sparse disparity per image (from ``disparity``, or
-    from ``depth`` by f*B/Z, or inverse depth without a baseline), NaN-aware area-average,
-    PCA with missing data by EM, and features from the valid pixels alone."""
+#: ``source`` of a disparity channel built from a dataset's dense ``depth`` column.
+DENSE_DEPTH_SOURCE = "dense-depth"
+
+
+def disparity_source(dataset: Dataset) -> tuple[str, str]:
+    """(source, units) of the disparity channel ``dataset`` gives: its ``disparity`` column
+    (source: ``dataset.json``'s ``disparity_source``, e.g. ``stereo-matcher``, or
+    ``disparity`` when not said; units disparity_px), else its ``depth`` column
+    (``dense-depth``; f*B/Z in disparity_px with a baseline, inverse depth without).
+    LinoLocError naming the folder if it has neither."""
+    if dataset.has_disparity:
+        return dataset.meta.disparity_source or "disparity", "disparity_px"
+    if dataset.has_depth:
+        return DENSE_DEPTH_SOURCE, "disparity_px" if dataset.meta.camera.baseline_m else "inverse_depth_per_m"
+    raise LinoLocError(f"{dataset.root}: no disparity or depth in this dataset: cannot build a disparity channel")
+
+
+def _disparity_rows(dataset: Dataset, size: tuple[int, int], min_valid_fraction: float,
+                    progress: ProgressFn | None) -> np.ndarray:
+    """(N, w*h) float32 NaN-aware area averages of every row's disparity (NaN = no value):
+    the ``disparity`` column if the dataset has one, else disparity from ``depth``."""
     from lino_loc.disparity import depth_to_disparity, depth_to_inverse_depth, downsample_sparse
 
     n = len(dataset)
-    w, h = int(size[0]), int(size[1])
+    w, h = size
     cam = dataset.meta.camera
-    if dataset.has_disparity:
-        units = "disparity_px"
-    elif dataset.has_depth:
-        units = "disparity_px" if cam.baseline_m else "inverse_depth_per_m"
-    else:
-        raise LinoLocError(f"{dataset.root}: no disparity or depth in this dataset: cannot build a disparity channel")
     X = np.full((n, w * h), np.nan, dtype=np.float32)
     for i in range(n):
         disp = dataset.disparity(i) if dataset.has_disparity else None
@@ -761,8 +762,30 @@ def build_disparity_channel(
             X[i] = downsample_sparse(disp, (w, h), min_valid_fraction=min_valid_fraction).reshape(-1)
         if progress and ((i + 1) % 64 == 0 or i + 1 == n):
             progress(i + 1, n)
-    return disparity_channel_from_vectors(X, (w, h), n_features, units=units, min_valid_fraction=min_valid_fraction,
-                                          seed=seed, max_iter=max_iter, virtual=virtual)
+    return X
+
+
+def build_disparity_channel(
+    dataset: Dataset,
+    n_features: int = DEFAULT_FEATURES,
+    size: tuple[int, int] = DEFAULT_SIZE,
+    progress: ProgressFn | None = None,
+    *,
+    min_valid_fraction: float = 0.25,
+    seed: int = 0,
+    max_iter: int = 100,
+    virtual: VirtualHeadings | None = None,
+) -> ChannelMap:
+    """The disparity channel (section 5): sparse disparity per image (the ``disparity``
+    column, or ``depth`` by f*B/Z, or inverse depth without a baseline: see
+    :func:`disparity_source`, kept in the channel's ``source`` parameter), NaN-aware
+    area-average, then :func:`disparity_channel_from_vectors`."""
+    w, h = int(size[0]), int(size[1])
+    source, units = disparity_source(dataset)
+    X = _disparity_rows(dataset, (w, h), min_valid_fraction, progress)
+    return disparity_channel_from_vectors(X, (w, h), n_features, units=units, source=source,
+                                          min_valid_fraction=min_valid_fraction, seed=seed, max_iter=max_iter,
+                                          virtual=virtual)
 
 
 def disparity_channel_from_vectors(
@@ -771,16 +794,18 @@ def disparity_channel_from_vectors(
     n_features: int,
     *,
     units: str = "disparity_px",
+    source: str = "stereo-matcher",
     min_valid_fraction: float = 0.25,
     seed: int = 0,
     max_iter: int = 100,
     virtual: VirtualHeadings | None = None,
 ) -> ChannelMap:
     """The disparity channel from working-size sparse vectors ``X`` (N, w*h), NaN = no value
-    (``min_valid_fraction`` is the one they were area-averaged with, kept for the queries):
-    with ``virtual`` each image first becomes its V turned views; then PCA with missing data
-    by EM (:func:`lino_loc.pca_missing.fit_pca_missing`) and every row's features from its
-    valid pixels alone."""
+    (``min_valid_fraction`` is the one they were area-averaged with, kept for the queries;
+    ``source`` says where the disparity came from, :func:`disparity_source`): with
+    ``virtual`` each image first becomes its V turned views; then PCA with missing data by
+    EM (:func:`lino_loc.pca_missing.fit_pca_missing`) and every row's features from its valid
+    pixels alone."""
     from lino_loc.pca_missing import fit_pca_missing
 
     w, h = int(size[0]), int(size[1])
@@ -798,6 +823,7 @@ def disparity_channel_from_vectors(
         params={
             "min_valid_fraction": float(min_valid_fraction),
             "units": units,
+            "source": source,
             "seed": seed,
             "valid_fraction": float(np.isfinite(X).mean()),
             **(virtual.params() if virtual else {}),

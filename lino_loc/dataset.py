@@ -4,7 +4,7 @@ A dataset folder holds::
 
     DATASET/
       dataset.json     DatasetMeta: version, name, camera, disparity_scale, depth_scale,
-                       conditions, source
+                       conditions, source, disparity_source
       poses.csv        header row; columns image,x,y,theta and optionally
                        right, disparity, depth, condition, stamp
       images/          8-bit PNG or JPEG, grey or colour (read as grey)
@@ -93,6 +93,11 @@ class DatasetMeta(BaseModel):
     depth_scale: float = Field(default=1000, gt=0, allow_inf_nan=False)
     conditions: list[str] = []
     source: str = ""
+    disparity_source: str = Field(
+        default="",
+        description="how the disparity column was made, e.g. 'stereo-matcher' (lino_loc.disparity."
+        "compute_disparity on the right images) or 'device'; empty: not said",
+    )
 
 
 def _one_line_validation(exc: ValidationError) -> str:

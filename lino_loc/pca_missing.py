@@ -1,4 +1,4 @@
-"""Probabilistic PCA with missing data, fitted by EM, and projection of sparse samples.
+"""Probabilistic PCA with missing data, fitted by EM as a MAP estimate, and projection of sparse samples.
 
 Sparse disparity maps (paper section 5, Fig. 2) cannot be compressed with standard PCA: many
 pixels have no value. Following the paper's reference [11] (Porta, Verbeek, Kroese,
@@ -7,29 +7,56 @@ the EM algorithm for PCA (Roweis 1998, "EM algorithms for PCA and SPCA") in its
 probabilistic form (Tipping & Bishop 1999, PPCA), each sample contributes only its observed
 pixels.
 
-Model: ``x = W z + mu + eps`` with ``z ~ N(0, I_d)``, ``eps ~ N(0, sigma^2 I_D)``. For a
-sample n with observed coordinates o (mask ``m_n``):
+Model: ``x = W z + mu + eps`` with ``z ~ N(0, I_d)``, ``eps ~ N(0, sigma^2 I_D)``, so a
+sample's observed pixels o (mask ``m_n``) are ``x_o ~ N(mu_o, C_oo)``, ``C = W W^T + sigma^2 I``.
+
+Objective (the log posterior, up to a constant). With values missing in blocks the
+likelihood alone is nearly flat along whole ridges (covariances between pixels rarely or
+never observed together are barely constrained, W's scale can keep growing): ML EM creeps
+along them for hundreds of iterations and fits of nearly equal likelihood differ in their
+features. A weak conjugate prior on the model covariance makes the answer well defined::
+
+    L(W, mu, sigma^2) = sum_n log N(x_n,o | mu_o, C_oo)                  (the data)
+                        + nu * log N_S(C)                                 (the prior)
+    log N_S(C) = -1/2 (D log 2 pi + log|C| + tr(C^-1 S))
+
+``S`` is the data's pairwise-available covariance (``S_jk`` averaged over the samples that
+observe both j and k, 0 for pairs never seen together; D counts the pixels observed at
+least once) and ``nu = prior_weight * N`` (default 0.1 N): the prior is the likelihood of
+nu *complete* pseudo-samples of second moment S, an inverse-Wishart-type prior on C whose
+mode is PPCA of S (Tipping & Bishop's closed form). It fills in what the data leave
+undetermined and elsewhere weighs a tenth as much as the data; ``prior_weight = 0`` is the ML fit
+(flat prior). On complete data ``S`` is the sample covariance, and the MAP subspace is
+PCA's for every nu. mu and sigma^2 have flat priors.
+
+EM for L (exact: the pseudo-samples are complete data of the same model):
 
 - E-step: ``M_n = W_o^T W_o + sigma^2 I``, ``E[z_n] = M_n^-1 W_o^T (x_o - mu_o)``,
-  ``E[z_n z_n^T] = sigma^2 M_n^-1 + E[z_n] E[z_n]^T``.
-- M-step, per pixel j, from the samples that observe it, jointly for ``theta_j = (w_j, mu_j)``
-  with the augmented latent ``z~ = (z, 1)``:
-  ``theta_j = (sum_n m_nj E[z~ z~^T]_n)^-1 sum_n m_nj x_nj E[z~_n]``;
-  ``sigma^2 = sum_nj m_nj E[(x_nj - theta_j^T z~_n)^2] / sum_nj m_nj``.
-- Parameter expansion (PX-EM): the latent mean and covariance are re-estimated from the
-  E-step moments and folded back into mu and W, so the scale of W converges in a few
-  iterations instead of hundreds.
+  ``E[z_n z_n^T] = sigma^2 M_n^-1 + E[z_n] E[z_n]^T``; for the pseudo-samples (centred,
+  complete) ``E[z z^T] = sigma^2 M^-1 + M^-1 W^T S W M^-1``, ``E[x z^T] = S W M^-1`` with
+  ``M = W^T W + sigma^2 I`` (O(D^2 d)).
+- M-step, per pixel j, from the samples that observe it and the nu pseudo-samples, jointly
+  for ``theta_j = (w_j, mu_j)`` with the augmented latent ``z~ = (z, 1)``:
+  ``theta_j = (sum_n m_nj E[z~ z~^T]_n + nu E_S)^-1 (sum_n m_nj x_nj E[z~_n] + nu e_Sj)``;
+  ``sigma^2`` = the mean expected squared residual over observed values and pseudo-values.
+- Parameter expansion (PX-EM, Liu, Rubin & Wu 1998): the latent mean and covariance are
+  re-estimated from the E-step moments (the pseudo-samples inform the covariance) and
+  folded back into mu and W, so the scale of W converges in a few iterations instead of
+  hundreds. With the prior this step is not exact EM: an iterate whose objective falls
+  below its predecessor's is replaced by the plain EM step (monotonicity safeguard).
 - Acceleration (SQUAREM, Varadhan & Roland 2008): the (PX-)EM map is extrapolated every
-  two steps, with a monotonicity safeguard. Same fixed points as EM. Needed on real sparse
-  disparity maps: with most pixels missing in blocks and a spectrum without a gap at d, EM
-  converges linearly with a rate close to 1 (the log-likelihood creeps along a flat ridge
-  where W's scale keeps growing), so plain EM runs into its iteration limit.
+  two steps, kept only if the objective does not decrease. Same fixed points as EM.
+
+The recorded objective (``log_likelihood``, per observed value and pseudo-value) never
+decreases. The start is the prior's mode (PPCA of S: deterministic, no random numbers), or
+without the prior plain PCA of the mean-imputed data.
 
 Everything is vectorized: the N (d x d) matrices ``M_n = sum_j m_nj w_j w_j^T`` are one matrix
 product of the mask with the D x d(d+1)/2 table of products ``w_jk w_jl``; the D per-pixel
 (d+1) x (d+1) systems are one product of the transposed mask with the N x (d+1)(d+2)/2 table
 of ``E[z~ z~^T]``; the small systems are solved in batches. The observed-data log-likelihood
-(Woodbury / matrix determinant lemma) is tracked for convergence.
+(Woodbury / matrix determinant lemma) plus the prior's term is tracked for convergence.
+Pixels never observed are dropped before the fit (no work is spent on them).
 
 After convergence the principal subspace span(W) is given an orthonormal basis ordered by
 variance (``components``, like plain PCA: eq. 1's projection rows), and a sample's feature
@@ -304,6 +331,10 @@ def _init_subspace(Xc: NDArray, d: int, rng: np.random.Generator) -> tuple[F64, 
     return vt[:d].T, s[:d]
 
 
+#: Default weight of the prior on the model covariance, in samples per sample with data
+#: (nu = weight x N pseudo-samples; see :func:`fit_pca_missing`).
+DEFAULT_PRIOR_WEIGHT = 0.1
+
 _SOLVE_BLOCK = 512  # pixels per batch of M-step solves (bounds the (D, d+1, d+1) temporaries)
 
 
@@ -321,13 +352,114 @@ class _EMData:
     active: NDArray[np.bool_]
     sigma2_floor: float
     px_em: bool
+    prior: _CovPrior | None = None
 
 
-def _em_step(W: F64, mu: F64, sigma2: float, data: _EMData) -> tuple[F64, F64, float, float]:
+@dataclass
+class _CovPrior:
+    """The prior's fixed parts: nu pseudo-samples (complete, centred) of second moment S."""
+
+    nu: float
+    S: F64  # (D, D) pairwise-available covariance of the data (0 where never co-observed)
+    trace: float  # tr(S)
+
+
+class _PriorStats(NamedTuple):
+    """The prior's E-step at (W, sigma2): its log density and its M-step terms."""
+
+    log_density: float
+    Ezz: F64  # (d, d) E[z z^T] of one pseudo-sample
+    Exz: F64  # (D, d) E[x z^T] of one pseudo-sample
+
+
+def _prior_stats(W: F64, sigma2: float, prior: _CovPrior) -> _PriorStats:
+    """``nu * log N(S | 0, C)`` with ``C = W W^T + sigma2 I`` (a Gaussian log-likelihood of
+    nu complete centred samples of second moment S: ``-nu/2 (D log 2 pi + log|C| + tr(C^-1
+    S))``, by the determinant lemma and Woodbury in O(D^2 d)), and the pseudo-samples'
+    posterior moments ``E[z z^T] = sigma2 M^-1 + M^-1 W^T S W M^-1``, ``E[x z^T] = S W M^-1``
+    with ``M = W^T W + sigma2 I``."""
+    D, d = W.shape
+    M = W.T @ W
+    M[np.diag_indices(d)] += sigma2
+    Minv = np.linalg.inv(M)
+    SW = np.asarray(prior.S @ W.astype(prior.S.dtype, copy=False), dtype=np.float64)
+    G = W.T @ SW
+    logdet = (D - d) * math.log(sigma2) + float(np.linalg.slogdet(M)[1])
+    trace_term = (prior.trace - float(np.sum(Minv * G))) / sigma2
+    log_density = -0.5 * prior.nu * (D * _LOG_2PI + logdet + trace_term)
+    return _PriorStats(log_density, sigma2 * Minv + Minv @ G @ Minv, SW @ Minv)
+
+
+def _n_values(data: _EMData) -> float:
+    """Observed values plus the prior's pseudo-values (nu per pixel observed)."""
+    return data.n_obs + (data.prior.nu * float(data.seen.sum()) if data.prior is not None else 0.0)
+
+
+def _pairwise_covariance(data: _EMData) -> F64:
+    """(D, D) available-case covariance of the centred data: ``S_jk = sum_n m_nj m_nk x_nj
+    x_nk / sum_n m_nj m_nk`` (0 for pairs never observed together). Two symmetric rank-N
+    updates (BLAS syrk) of the (N, D) arrays."""
+    from scipy.linalg.blas import dsyrk, ssyrk
+
+    syrk = ssyrk if data.X0.dtype == np.float32 else dsyrk
+    S = syrk(1.0, data.X0, trans=1, lower=0)  # upper triangles, Fortran order
+    C = syrk(1.0, data.maskf, trans=1, lower=0)
+    pairs = C > 0.5
+    np.divide(S, C, out=S, where=pairs)
+    del C
+    S[~pairs] = 0.0
+    del pairs
+    for lo in range(0, S.shape[0], _SOLVE_BLOCK):  # the lower triangle from the upper, by blocks
+        sl = slice(lo, lo + _SOLVE_BLOCK)
+        S[sl, :lo] = S[:lo, sl].T
+        S[sl, sl] = np.triu(S[sl, sl]) + np.triu(S[sl, sl], 1).T
+    return np.ascontiguousarray(S)
+
+
+def _solve_pixels(A_packed: NDArray, B: F64, seen: NDArray[np.bool_], d1: int) -> F64:
+    """The (D, d1) solutions theta_j of the per-pixel (d1 x d1) normal equations (packed
+    upper triangles ``A_packed``, right-hand sides B), by blocks of pixels; 0 for pixels
+    never observed."""
+    iu1 = _triu(d1)
+    theta = np.zeros((B.shape[0], d1))
+    for lo in range(0, B.shape[0], _SOLVE_BLOCK):
+        sl = slice(lo, lo + _SOLVE_BLOCK)
+        A = _unpack_sym(np.asarray(A_packed[sl], dtype=np.float64), d1, iu1)
+        A[~seen[sl]] = np.eye(d1)
+        theta[sl] = np.linalg.solve(A, B[sl, :, None])[:, :, 0]
+    return theta
+
+
+def _px_fold(
+    W: F64, mu: F64, Ez: F64, S_sum: F64, ps: _PriorStats | None, data: _EMData
+) -> tuple[F64, F64]:
+    """PX-EM (Liu, Rubin & Wu 1998): the latent mean m and covariance C of the expanded model
+    z ~ N(m, C), estimated from the E-step moments of the samples with data (Ez, the sum
+    S_sum of their E[z z^T]) and, for C, the prior's centred pseudo-samples; mapped back to
+    z ~ N(0, I) by ``mu += W m``, ``W <- W C^1/2``. Any square root of C gives the same
+    model; the symmetric one turns the latent coordinates the least, so successive iterates
+    of W differ only by what changes the model (which the SQUAREM extrapolation relies on).
+    Unchanged if C is not positive definite."""
+    n = Ez.shape[0]
+    m_z = Ez.sum(0) / n
+    C = S_sum / n - np.outer(m_z, m_z)
+    if ps is not None:
+        nu = data.prior.nu  # type: ignore[union-attr]
+        C = (n * C + nu * ps.Ezz) / (n + nu)
+    evals, evecs = np.linalg.eigh(C)
+    if evals[0] <= 0:
+        return W, mu
+    return W @ ((evecs * np.sqrt(evals)) @ evecs.T), mu + W @ m_z
+
+
+def _em_step(
+    W: F64, mu: F64, sigma2: float, data: _EMData, px: bool = True
+) -> tuple[F64, F64, float, float]:
     """One EM (or PX-EM) iteration: the E-step at (W, mu, sigma2), then the M-step.
 
-    Returns the new (W, mu, sigma2) and the observed-data log-likelihood per observed value
-    at the *input* parameters.
+    Returns the new (W, mu, sigma2) and the objective (log posterior per observed value and
+    pseudo-value) at the *input* parameters. ``px``: with the parameter-expanded fold (if
+    the fit uses it).
     """
     X0, maskf = data.X0, data.maskf
     n = X0.shape[0]
@@ -338,7 +470,8 @@ def _em_step(W: F64, mu: F64, sigma2: float, data: _EMData) -> tuple[F64, F64, f
     seen, active = data.seen, data.active
     # ---- E-step
     Ez, Minv, ll = _posterior(W, mu, sigma2, X0, maskf, data.rowcount, data.xx_rows)
-    ll_obs = float(ll.sum() / data.n_obs)
+    ps = _prior_stats(W, sigma2, data.prior) if data.prior is not None else None
+    ll_obs = float((ll.sum() + (ps.log_density if ps else 0.0)) / _n_values(data))
     # ---- M-step for (w_j, mu_j) with z~ = (z, 1): E[z~ z~^T] per sample, packed
     St = np.empty((n, d1, d1))
     Minv *= sigma2
@@ -353,31 +486,21 @@ def _em_step(W: F64, mu: F64, sigma2: float, data: _EMData) -> tuple[F64, F64, f
     A_packed = maskf.T @ _pack_sym(St, iu1).astype(dt, copy=False)
     Zt = St[:, d, :]  # (N, d1) = (E[z], 1)
     B = np.asarray(X0.T @ Zt.astype(dt, copy=False), dtype=np.float64)  # (D, d1)
+    if ps is not None:  # the prior's nu complete pseudo-samples
+        nu = data.prior.nu  # type: ignore[union-attr]
+        B[:, :d] += nu * ps.Exz
+        A_packed = A_packed.astype(np.float64)
+        A_packed += nu * _pack_sym(np.pad(ps.Ezz, ((0, 1), (0, 1)))[None], iu1)
     B[~seen] = 0.0
-    theta = np.zeros((X0.shape[1], d1))
-    for lo in range(0, X0.shape[1], _SOLVE_BLOCK):  # (d1 x d1) systems, by blocks of pixels
-        sl = slice(lo, lo + _SOLVE_BLOCK)
-        A = _unpack_sym(np.asarray(A_packed[sl], dtype=np.float64), d1, iu1)
-        A[~seen[sl]] = np.eye(d1)
-        theta[sl] = np.linalg.solve(A, B[sl, :, None])[:, :, 0]
+    theta = _solve_pixels(A_packed, B, seen, d1)
     del A_packed, St
     W_new = theta[:, :d]
     mu_new = theta[:, d].copy()
-    sse = data.xsq_total - float(np.einsum("ji,ji->", theta, B))
-    sigma2_new = max(sse / data.n_obs, data.sigma2_floor)
-    n_active = int(active.sum())
-    if data.px_em and n_active > 0:
-        # PX-EM (Liu, Rubin & Wu 1998): estimate the latent mean m and covariance C in the
-        # expanded model z ~ N(m, C), then map back to z ~ N(0, I): mu += W m, W <- W C^1/2.
-        # Any square root of C gives the same model; the symmetric one turns the latent
-        # coordinates the least, so successive iterates of W differ only by what changes
-        # the model (which the SQUAREM extrapolation relies on).
-        m_z = Ez[active].sum(0) / n_active
-        C = S_active / n_active - np.outer(m_z, m_z)
-        evals, evecs = np.linalg.eigh(C)
-        if evals[0] > 0:
-            mu_new = mu_new + W_new @ m_z
-            W_new = W_new @ ((evecs * np.sqrt(evals)) @ evecs.T)
+    xsq = data.xsq_total + (data.prior.nu * data.prior.trace if ps is not None else 0.0)  # type: ignore[union-attr]
+    sse = xsq - float(np.einsum("ji,ji->", theta, B))
+    sigma2_new = max(sse / _n_values(data), data.sigma2_floor)
+    if px and data.px_em and active.any():
+        W_new, mu_new = _px_fold(W_new, mu_new, Ez[active], S_active, ps, data)
     return np.ascontiguousarray(W_new), mu_new, sigma2_new, ll_obs
 
 
@@ -393,14 +516,19 @@ def fit_pca_missing(
     dtype: type = np.float64,
     px_em: bool = True,
     accelerate: bool = True,
+    prior_weight: float = DEFAULT_PRIOR_WEIGHT,
 ) -> MissingDataPCA:
-    """Fit probabilistic PCA to (N, D) data with NaN for missing values, by EM.
+    """Fit probabilistic PCA to (N, D) data with NaN for missing values: the MAP estimate
+    of the module docstring's objective by EM.
 
-    Initialised from plain PCA of the mean-imputed data. Stops when the relative change of
-    the observed-data log-likelihood (per observed value) over one EM iteration falls below
-    ``tol``; or when one iteration turns the principal subspace by less than
-    ``subspace_tol`` radians (largest principal angle between span(W) before and after)
-    while W's singular values and sigma^2 change by less than ``10 * subspace_tol``
+    ``prior_weight`` (>= 0, default :data:`DEFAULT_PRIOR_WEIGHT` = 0.1) is nu / N, the weight
+    of the prior on the covariance in samples per sample with data; 0 is the ML fit. With
+    the prior the start is PPCA of the pairwise-available covariance S; without it plain
+    PCA of the mean-imputed data (``seed`` drives its randomized SVD on large problems).
+    Stops when the relative change of the objective (per observed value) over one EM
+    iteration falls below ``tol``; or when one iteration turns the principal subspace by
+    less than ``subspace_tol`` radians (largest principal angle between span(W) before and
+    after) while W's singular values and sigma^2 change by less than ``10 * subspace_tol``
     (relative); or after ``max_iter`` iterations (E-steps; then ``converged`` is False).
     ``min_sigma2`` is a floor on sigma^2 relative to the data's mean observed variance
     (keeps noiseless data well posed; at least 1e-6 with float32). ``dtype`` is the
@@ -410,31 +538,84 @@ def fit_pca_missing(
     removes plain EM's very slow convergence of the scale of W when values are missing.
 
     ``accelerate`` (default on) wraps the (PX-)EM map in SQUAREM (Varadhan & Roland 2008,
-    scheme S3 with the adaptive step bound and monotonicity safeguard of their reference
-    implementation): every two EM steps, the parameters are extrapolated along the EM
-    direction and one EM step is taken from there; the extrapolation is kept only if its
-    log-likelihood is not below that of the second EM step's starting point, otherwise the
-    plain EM iterate is used. The fixed points (the ML estimate) are those of EM, and the
-    recorded log-likelihood stays non-decreasing (up to rounding); with much of the data
-    missing in blocks (disparity maps) EM converges linearly with a rate close to 1 and
-    SQUAREM reaches a given log-likelihood in fewer iterations (see docs/results.md,
-    'EM-PCA with missing data'). ``log_likelihood`` records the values at the accepted
-    iterates. Deterministic for a given ``seed`` (used only by the randomized initial SVD of
-    large problems). LinoLocError for data that is not 2-D or has no valid value,
-    ``n_components`` outside [1, min(N, D)], or another ``dtype``.
+    scheme S3, adaptive step bound): every two EM steps the parameters are extrapolated
+    along the EM direction, kept only if the objective does not drop (see
+    :func:`_squarem_step`). The fixed points are those of EM; the recorded objective
+    (``log_likelihood``, at the accepted iterates) never decreases. Deterministic. The
+    (N, D) work arrays are one copy of the data's observed columns in ``dtype`` plus its
+    mask, and with the prior the (D, D) matrix S. LinoLocError for data that is not 2-D or
+    has no valid value, ``n_components`` outside [1, min(N, D)], another ``dtype``, or a
+    negative or non-finite ``prior_weight``.
     """
     a, d = _checked_data(X, n_components, dtype)
+    if not (math.isfinite(prior_weight) and prior_weight >= 0.0):
+        raise LinoLocError(f"prior_weight must be finite and >= 0, got {prior_weight}")
     rng = np.random.default_rng(seed)
+    cols = np.isfinite(a).any(0)  # pixels never observed: no parameters, zeros in the model
+    full_d = a.shape[1]
+    if not cols.all():
+        a = a[:, cols]
     data, mu0, colcount = _centred_data(a, dtype, min_sigma2, px_em)
-    W, sigma2 = _initial_params(data, d, rng)
+    W, sigma2 = _start(data, d, prior_weight, rng)
     mu = np.zeros(data.X0.shape[1])
     fit = _run_em(W, mu, sigma2, data, max_iter, tol, subspace_tol, accelerate)
     if not fit.converged:
-        log.info(
-            "EM-PCA stopped after max_iter=%d iterations without reaching the tolerance",
-            fit.n_iter,
-        )
-    return _fitted_model(fit, mu0, data.seen, colcount)
+        log.info("EM-PCA stopped after max_iter=%d iterations without reaching the tolerance", fit.n_iter)
+    model = _fitted_model(fit, mu0, data.seen, colcount)
+    return model if cols.all() else _expanded(model, cols, full_d)
+
+
+def _start(data: _EMData, d: int, prior_weight: float, rng: np.random.Generator) -> tuple[F64, float]:
+    """Set up the prior (``prior_weight`` > 0) in ``data`` and return the start (W, sigma^2):
+    the prior's mode, or without a prior :func:`_initial_params`."""
+    if prior_weight <= 0.0:
+        return _initial_params(data, d, rng)
+    S = _pairwise_covariance(data)
+    data.prior = _CovPrior(nu=prior_weight * float(data.active.sum()), S=S, trace=float(np.trace(S)))
+    return _prior_mode(S, d, data.sigma2_floor)
+
+
+def _prior_mode(S: F64, d: int, floor: float) -> tuple[F64, float]:
+    """PPCA's closed-form maximum for the second moment S (Tipping & Bishop 1999): the top
+    d eigenpairs (U, lam) of S, ``sigma2`` the mean of the other eigenvalues (at least the
+    floor), ``W = U diag(sqrt(max(lam - sigma2, 1e-3 lam_1)))``. Deterministic (signs fixed
+    by the largest loading)."""
+    D = S.shape[0]
+    if D <= 600 or d >= D - 1:
+        lam, U = np.linalg.eigh(np.asarray(S, dtype=np.float64))
+        lam, U = lam[::-1][:d], U[:, ::-1][:, :d]
+    else:
+        from scipy.sparse.linalg import eigsh
+
+        v0 = np.ones(D) / math.sqrt(D)
+        lam, U = eigsh(S, k=d, which="LA", v0=v0.astype(S.dtype), tol=1e-6)
+        order = np.argsort(lam)[::-1]
+        lam, U = lam[order].astype(np.float64), U[:, order].astype(np.float64)
+    sigma2 = max((float(np.trace(S)) - float(lam.sum())) / max(D - d, 1), floor)
+    U *= np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(d)])[None, :]
+    return U * np.sqrt(np.maximum(lam - sigma2, 1e-3 * max(float(lam[0]), floor)))[None, :], sigma2
+
+
+def _expanded(model: MissingDataPCA, cols: NDArray[np.bool_], D: int) -> MissingDataPCA:
+    """The model of a fit on the observed columns ``cols`` written for all D pixels (zero
+    mean, loadings and components, count 0 for the others)."""
+
+    def wide(a: NDArray, axis: int) -> NDArray:
+        shape = list(a.shape)
+        shape[axis] = D
+        out = np.zeros(shape, dtype=a.dtype)
+        if axis == 0:
+            out[cols] = a
+        else:
+            out[:, cols] = a
+        return out
+
+    return MissingDataPCA(
+        mean=wide(model.mean, 0), components=wide(model.components, 1),
+        explained_variance=model.explained_variance, W=wide(model.W, 0), sigma2=model.sigma2,
+        observed_count=wide(model.observed_count, 0), log_likelihood=model.log_likelihood,
+        n_iter=model.n_iter, converged=model.converged,
+    )
 
 
 def _checked_data(X: ArrayLike, n_components: int, dtype: type) -> tuple[NDArray, int]:
@@ -597,19 +778,36 @@ class _EMLoop:
         self.subspace_tol = subspace_tol
         self.history: list[float] = []
         self.it = 0
+        self.last: _Params | None = None  # the iterate whose objective is history[-1]
+        self.fallbacks = 0
 
-    def step(self, p: _Params) -> tuple[_Params, float]:
-        """One EM step from p: the next parameters and the log-likelihood at p."""
+    def step(self, p: _Params, px: bool = True) -> tuple[_Params, float]:
+        """One EM step from p: the next parameters and the objective at p."""
         self.it += 1
-        W1, mu1, s1, ll = _em_step(p[0], p[1], p[2], self.data)
+        W1, mu1, s1, ll = _em_step(p[0], p[1], p[2], self.data, px)
         return (W1, mu1, s1), ll
 
-    def advance(self, p: _Params) -> tuple[_Params, float, bool]:
-        """One EM step from p, its log-likelihood recorded: (next parameters, log-likelihood
-        at p, whether the stopping rule holds)."""
-        p_next, ll = self.step(p)
-        stop = self.done(p, p_next, ll, self.history[-1] if self.history else None)
+    def record(self, p: _Params, ll: float) -> None:
+        """Record p as the current iterate, of objective ll."""
         self.history.append(ll)
+        self.last = p
+
+    def advance(self, p: _Params) -> tuple[_Params, float, bool]:
+        """One EM step from p, its objective recorded: (next parameters, objective at p,
+        whether the stopping rule holds).
+
+        Monotonicity safeguard: the parameter-expanded step is exact EM only without the
+        prior; if p (the image of such a step) has a lower objective than the last recorded
+        iterate, p is dropped and a plain EM step (whose image never lowers the objective)
+        is taken from that iterate instead; nothing is recorded then."""
+        p_next, ll = self.step(p)
+        prev = self.history[-1] if self.history else None
+        if prev is not None and self.last is not None and ll < prev - 1e-12 * abs(prev):
+            self.fallbacks += 1
+            p_next, _ = self.step(self.last, px=False)
+            return p_next, prev, False
+        stop = self.done(p, p_next, ll, prev)
+        self.record(p, ll)
         return p_next, ll, stop
 
     def done(self, p: _Params, p_next: _Params, ll: float, ll_prev: float | None) -> bool:
@@ -653,6 +851,7 @@ def _run_em(
     step_max = 1.0  # SQUAREM's adaptive bound on the step length (Varadhan & Roland 2008)
     while loop.it < max_iter:
         p0 = p
+        fallbacks = loop.fallbacks
         p, _, stop = loop.advance(p0)
         if stop:
             return _EMResult(*p, loop.history, loop.it, True)
@@ -662,7 +861,7 @@ def _run_em(
         p, ll1, stop = loop.advance(p1)
         if stop:
             return _EMResult(*p, loop.history, loop.it, True)
-        if loop.it >= max_iter:
+        if loop.it >= max_iter or loop.fallbacks != fallbacks:  # not two EM steps: no extrapolation
             continue
         p, step_max = _squarem_step(loop, p0, p1, p, ll1, step_max)
     return _EMResult(*p, loop.history, loop.it, False)
@@ -699,7 +898,7 @@ def _squarem_step(
     if math.isfinite(llp) and llp >= ll1:
         # (logged, not a convergence test: ll1 -> llp is an extrapolation, not an EM step)
         loop.done(pp, p3, llp, None)
-        loop.history.append(llp)
+        loop.record(pp, llp)
         return p3, step_max * 4.0 if alpha == step_max else step_max
     if alpha == step_max:  # rejected: continue from the EM iterate p2
         step_max = max(1.0, step_max / 4.0)

@@ -177,6 +177,11 @@ class MapBuildConfig(_Section):
     features: int = Field(5, ge=1, le=200, description="PCA features per image (eq. 1)")
     preprocess: Preprocess = "none"
     disparity: bool = Field(False, description="also build the disparity channel (EM-PCA)")
+    disparity_source: Literal["stereo-matcher", "dense-depth"] = Field(
+        "stereo-matcher",
+        description="the disparity channel's data: the survey's stereo pairs through the product's block "
+        "matcher (sparse, as on the robot) or the renderer's exact dense depth (no camera gives it)",
+    )
     virtual_headings: int = Field(
         1, ge=1, le=31, description="map entries per image: the image turned by this many headings "
         "virtual_step_deg apart (lino_loc.virtual_views); 1 = the images alone"

@@ -12,7 +12,8 @@ Two jobs, both for the simulated robot (``devices.camera.kind = "sim"``):
 
 2. :func:`ensure_sim_map` makes sure ``map.path`` holds the map described by ``[map.build]``:
    when the file is there, loads, and its side file ``<map>.build.json`` records the same
-   build settings and world, it is reused; otherwise the world is surveyed with the renderer
+   build settings (the disparity channel's source among them), world and code, it is
+   reused; otherwise the world is surveyed with the renderer
    (:func:`drivers.sim.survey.run_survey`) into a cache folder next to the map, the map is
    built once (:func:`lino_loc.appearance_map.build_map`, eq. 1), saved atomically, and the
    survey folder removed. A lock file serializes concurrent builders (two daemons, tests).
@@ -419,6 +420,7 @@ def ensure_sim_map(
                 world, survey_dir, step=build.step,
                 heading_step_rad=math.radians(build.heading_step_deg), lighting=build.lighting,
                 camera=camera, seed=seed, stereo=build.disparity, overwrite=True,
+                dense_depth=build.disparity and build.disparity_source == "dense-depth",
             )
             size = (min(DEFAULT_SIZE[0], build.width), min(DEFAULT_SIZE[1], build.height))
             channels = ("intensity", "disparity") if build.disparity else ("intensity",)

@@ -165,3 +165,38 @@ def test_dataset_check_lists_every_problem(dataset: Path, monkeypatch: pytest.Mo
     assert summary["ok"] is False and summary["problems"] == lines
     code, out, err = _run(capsys, "dataset", "check", str(dataset))
     assert code == 2 and err.strip().splitlines() == lines and "problems" not in json.loads(out)
+
+
+def test_disparity_channel_info_names_its_source_and_the_em(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rng = np.random.default_rng(1)
+    cam = CameraInfo(width=24, height=18, fx=20.0, fy=20.0, cx=12.0, cy=9.0, baseline_m=0.075)
+    root = tmp_path / "stereo"
+    meta = DatasetMeta(name="st", camera=cam, disparity_source="stereo-matcher")
+    with DatasetWriter(root, meta) as w:
+        for i in range(16):
+            disp = rng.uniform(2.0, 20.0, (18, 24))
+            disp[rng.random((18, 24)) < 0.6] = np.nan  # sparse, as a stereo matcher's
+            w.add(rng.integers(0, 256, (18, 24), dtype=np.uint8), (0.5 * i, 0.0, 0.0), disparity=disp)
+    out_map = tmp_path / "d.npz"
+    code, _, err = _run(capsys, "map", "build", str(root), "--out", str(out_map), "--features", "3",
+                        "--size", "12x9", "--channels", "intensity,disparity")
+    assert code == 0, err
+    code, out, _ = _run(capsys, "map", "info", str(out_map), "--json")
+    params = json.loads(out)["channels"]["disparity"]["params"]
+    assert params["source"] == "stereo-matcher" and params["em_converged"] is True
+    assert 0 < params["em_iterations"] < 100
+    code, out, _ = _run(capsys, "map", "info", str(out_map))
+    assert code == 0 and "source stereo-matcher" in out
+    assert f"EM {params['em_iterations']} iterations (converged)" in out
+    # a map written before these parameters existed still loads; its info leaves them out
+    with np.load(out_map, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    header = json.loads(bytes(arrays["header"]).decode())
+    for key in ("source", "em_iterations", "em_converged"):
+        header["channels"]["disparity"]["params"].pop(key)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    old = tmp_path / "old.npz"
+    np.savez(old, **arrays)
+    code, out, err = _run(capsys, "map", "info", str(old))
+    assert code == 0, err
+    assert "disparity: 3 features" in out and "EM " not in out and "source" not in out

@@ -14,7 +14,9 @@ import pytest
 from drivers.sim.renderer import CameraModel
 from drivers.sim.survey import condition_name, run_survey, survey_poses
 from drivers.sim.world import World, WorldSpec
+from lino_loc.appearance_map import build_map
 from lino_loc.dataset import Dataset
+from lino_loc.disparity import StereoConfig, compute_disparity
 from lino_loc.errors import LinoLocError
 from services.commands import survey_cmd
 
@@ -40,6 +42,7 @@ def _world(with_crate: bool = True) -> World:
 
 
 CAM = CameraModel(width=40, height=30)
+SMALL_STEREO = StereoConfig(num_disparities=16, block_size=5)  # a matcher that fits 40 x 30 images
 
 
 def test_grid_skips_colliding_positions() -> None:
@@ -54,7 +57,8 @@ def test_grid_skips_colliding_positions() -> None:
 
 def test_survey_writes_dataset(tmp_path: Path) -> None:
     out = tmp_path / "ds"
-    res = run_survey(_world(), out, step=1.0, heading_step_rad=math.radians(120), camera=CAM, seed=3)
+    res = run_survey(_world(), out, step=1.0, heading_step_rad=math.radians(120), camera=CAM, seed=3,
+                     stereo_config=SMALL_STEREO)
     assert res.rows == (4 * 3 - 1) * 3  # 4 x 3 positions, the crate blocks (2, 1.5)
     poses, _ = survey_poses(_world(), 1.0, math.radians(120))
     assert res.rows == len(poses)
@@ -65,12 +69,21 @@ def test_survey_writes_dataset(tmp_path: Path) -> None:
     assert meta["camera"]["width"] == 40 and "world=tiny" in meta["source"]
     with open(out / "poses.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert {"image", "x", "y", "theta", "right", "depth", "condition"} <= set(rows[0])
+    assert {"image", "x", "y", "theta", "right", "disparity", "condition"} <= set(rows[0])
+    assert "depth" not in rows[0] and meta["disparity_source"] == "stereo-matcher"
     got = np.array([[float(r["x"]), float(r["y"]), float(r["theta"])] for r in rows])
     np.testing.assert_allclose(got, poses)
-    assert (out / rows[0]["right"]).is_file() and (out / rows[0]["depth"]).is_file()
+    assert (out / rows[0]["right"]).is_file() and (out / rows[0]["disparity"]).is_file()
+    # the disparity column is the matcher's on the stored pair, to the 1/16 px of the PNG
+    # (whose 0 means "no value", so a matched disparity 0 is stored as none)
+    want = compute_disparity(ds.image(0), ds.right(0), SMALL_STEREO)
+    got_d = ds.disparity(0)
+    pos = np.nan_to_num(want) > 0
+    np.testing.assert_array_equal(np.isfinite(got_d), pos)
+    np.testing.assert_allclose(got_d[pos], want[pos], atol=1 / 32)
     # same seed, same survey
-    res2 = run_survey(_world(), tmp_path / "ds2", step=1.0, heading_step_rad=math.radians(120), camera=CAM, seed=3)
+    res2 = run_survey(_world(), tmp_path / "ds2", step=1.0, heading_step_rad=math.radians(120), camera=CAM, seed=3,
+                      stereo_config=SMALL_STEREO)
     assert res2.rows == res.rows
     assert (out / rows[-1]["image"]).read_bytes() == (tmp_path / "ds2" / rows[-1]["image"]).read_bytes()
 
@@ -93,10 +106,37 @@ def test_other_lighting_same_poses_and_scene_changes(tmp_path: Path) -> None:
 
 def test_existing_folder_needs_overwrite(tmp_path: Path) -> None:
     out = tmp_path / "ds"
-    run_survey(_world(), out, step=2.0, heading_step_rad=math.pi, camera=CAM)
+    run_survey(_world(), out, step=2.0, heading_step_rad=math.pi, camera=CAM, stereo=False)
     with pytest.raises(LinoLocError):
-        run_survey(_world(), out, step=2.0, heading_step_rad=math.pi, camera=CAM)
-    run_survey(_world(), out, step=2.0, heading_step_rad=math.pi, camera=CAM, overwrite=True)
+        run_survey(_world(), out, step=2.0, heading_step_rad=math.pi, camera=CAM, stereo=False)
+    run_survey(_world(), out, step=2.0, heading_step_rad=math.pi, camera=CAM, stereo=False, overwrite=True)
+
+
+def test_stereo_survey_is_sparse_and_its_map_says_so(tmp_path: Path) -> None:
+    """A stereo survey's disparity is the matcher's, sparse as a stereo camera's; the
+    renderer's exact dense depth only on request, and the map's channel names its source."""
+    cam = CameraModel(width=96, height=72)
+    sparse = run_survey(_world(False), tmp_path / "s", step=1.0, heading_step_rad=math.radians(90), camera=cam)
+    ds = Dataset.open(sparse.out)
+    assert ds.has_disparity and ds.has_right and not ds.has_depth
+    valid = np.mean([np.isfinite(ds.disparity(i)).mean() for i in range(len(ds))])
+    assert 0.02 < valid < 0.9  # some pixels matched, many not: no stereo camera is dense
+    m = build_map(ds, n_features=3, size=(24, 18), channels=("intensity", "disparity"))
+    assert m.channels["disparity"].params["source"] == "stereo-matcher"
+    dense = run_survey(_world(False), tmp_path / "d", step=1.0, heading_step_rad=math.radians(90), camera=cam,
+                       dense_depth=True)
+    dd = Dataset.open(dense.out)
+    assert dd.has_depth and not dd.has_disparity and dd.meta.camera.baseline_m == pytest.approx(0.075)
+    assert np.isfinite(dd.depth(0)).mean() > 0.99
+    m = build_map(dd, n_features=3, size=(24, 18), channels=("intensity", "disparity"))
+    assert m.channels["disparity"].params["source"] == "dense-depth"
+    assert m.channels["disparity"].params["units"] == "disparity_px"
+
+
+def test_stereo_too_small_for_the_matcher_is_a_one_line_error(tmp_path: Path) -> None:
+    with pytest.raises(LinoLocError, match="too small for the stereo matcher"):
+        run_survey(_world(), tmp_path / "x", step=2.0, heading_step_rad=math.pi, camera=CAM)
+    assert not (tmp_path / "x").exists()
 
 
 def _cli(argv: list[str]) -> int:

@@ -13,6 +13,7 @@ from pathlib import Path
 #: Modules whose code decides a rendered view and the map built from it.
 CACHE_CODE: tuple[str, ...] = (
     "drivers.sim.renderer", "drivers.sim.lighting", "drivers.sim.textures", "drivers.sim.world",
+    "drivers.sim.survey",
     "lino_loc.preprocessing", "lino_loc.disparity", "lino_loc.pca", "lino_loc.pca_missing",
     "lino_loc.virtual_views", "lino_loc.appearance_map",
 )

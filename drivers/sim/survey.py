@@ -4,10 +4,18 @@
 every ``step`` metres over the world's mapped area, headings every ``heading_step_rad``;
 poses where the robot's footprint touches furniture or walls are skipped) and writes the
 dataset folder (docs/datasets.md) through :class:`lino_loc.dataset.DatasetWriter`: the left
-(reference) image, its depth, the camera pose and the condition (the lighting name, joined
-with the scene-change names by ``+`` when there are any). With ``stereo`` the right image
-of the rectified pair goes to the ``right`` column / ``images_right/`` (an extension of the
-dataset contract, used by the stereo matcher to compute disparity).
+(reference) image, the camera pose and the condition (the lighting name, joined with the
+scene-change names by ``+`` when there are any). With ``stereo`` (the default) the right
+image of the rectified pair goes to the ``right`` column / ``images_right/`` and the pair's
+disparity, computed by the product's block matcher
+(:func:`lino_loc.disparity.compute_disparity`, ``stereo_config``, default
+:class:`~lino_loc.disparity.StereoConfig`), to the ``disparity`` column: sparse, with no
+value where the matcher's checks fail, as a stereo camera delivers it. ``dataset.json``
+then says ``disparity_source: "stereo-matcher"``. The renderer's dense depth (exact at
+every pixel, which no stereo camera gives) is written only with ``dense_depth``, to the
+``depth`` column *instead of* the matcher's disparity (a map built from it names its
+disparity channel's source ``dense-depth``). The camera's baseline is recorded whenever
+stereo or depth is written.
 
 The grid does not depend on the lighting, so surveys of the same world under different
 lights line up row by row. Scene changes that block a grid pose remove that pose (the
@@ -30,6 +38,11 @@ import numpy as np
 from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.world import World, grid_poses, load_world
 from lino_loc.dataset import CameraInfo, DatasetMeta, DatasetWriter
+from lino_loc.disparity import StereoConfig, compute_disparity
+from lino_loc.errors import LinoLocError
+
+#: ``dataset.json``'s ``disparity_source`` of a survey whose disparity is the matcher's.
+STEREO_MATCHER = "stereo-matcher"
 
 __all__ = ["SurveyResult", "condition_name", "grid_poses", "run_survey", "survey_poses"]
 
@@ -77,11 +90,17 @@ def run_survey(
     overwrite: bool = False,
     radius: float = 0.25,
     progress: Callable[[int, int], None] | None = None,
+    *,
+    dense_depth: bool = False,
+    stereo_config: StereoConfig | None = None,
 ) -> SurveyResult:
     """Render the survey grid of ``world`` under ``lighting`` and write a dataset folder.
 
     Row i's sensor noise comes from ``np.random.default_rng((seed, i))``, so a survey is
-    reproducible and independent of how it is split."""
+    reproducible and independent of how it is split. ``stereo``: right image and sparse
+    matcher disparity per row; ``dense_depth``: the renderer's exact depth per row (see the
+    module docstring). LinoLocError (before anything is rendered) if ``stereo`` and the
+    image is too small for ``stereo_config``'s matcher."""
     import time
 
     t0 = time.perf_counter()
@@ -89,6 +108,11 @@ def run_survey(
     changes = w.check_changes(tuple(scene_changes))
     w.check_lighting(lighting)
     cam = camera if camera is not None else CameraModel()
+    matcher = stereo_config if stereo_config is not None else StereoConfig()
+    if stereo and not dense_depth and not (min(cam.width, cam.height) >= matcher.block_size
+                       and cam.width > matcher.num_disparities + matcher.min_disparity):
+        raise LinoLocError(f"survey: a {cam.width}x{cam.height} image is too small for the stereo matcher "
+                           f"(block {matcher.block_size}, {matcher.num_disparities} disparities); use --no-stereo")
     poses, skipped = survey_poses(w, step, heading_step_rad, radius, changes)
     renderer = Renderer(w, camera=cam, lighting=lighting, scene_changes=changes, seed=seed)
     fx, fy, cx, cy = cam.intrinsics()
@@ -96,8 +120,9 @@ def run_survey(
     meta = DatasetMeta(
         name=f"{w.name}-{cond}",
         camera=CameraInfo(width=cam.width, height=cam.height, fx=fx, fy=fy, cx=cx, cy=cy,
-                          baseline_m=cam.baseline_m if stereo and cam.baseline_m > 0 else None),
+                          baseline_m=cam.baseline_m if (stereo or dense_depth) and cam.baseline_m > 0 else None),
         conditions=[cond],
+        disparity_source=STEREO_MATCHER if stereo and not dense_depth else "",
         source=(f"lino-loc sim world={w.name} lighting={lighting} scene_changes={','.join(changes) or 'none'} "
                 f"step={step} heading_step_deg={math.degrees(heading_step_rad):g} seed={seed} "
                 f"camera_height_m={cam.height_m}"),
@@ -106,7 +131,9 @@ def run_survey(
         for i, (x, y, th) in enumerate(poses):
             view = renderer.render(float(x), float(y), float(th), stereo=stereo,
                                    rng=np.random.default_rng((seed, i)))
-            writer.add(image=view.grey, pose=view.camera_pose, condition=cond, depth=view.depth,
+            disparity = compute_disparity(view.left, view.right, matcher) if stereo and not dense_depth else None
+            writer.add(image=view.grey, pose=view.camera_pose, condition=cond,
+                       depth=view.depth if dense_depth else None, disparity=disparity,
                        right=view.right if stereo else None)
             if progress is not None:
                 progress(i + 1, len(poses))

@@ -116,6 +116,20 @@ def _entries(info: dict) -> str:
     return f"entries    {info['n_images']} ({info['n_images'] // v} images x {v} headings),"
 
 
+def _em_summary(params: dict) -> str:
+    """``, source stereo-matcher, 25.8% valid, EM 31 iterations (converged)`` for a channel
+    fitted by EM-PCA; the parts a map does not record (older maps) are left out."""
+    parts = []
+    if params.get("source"):
+        parts.append(f"source {params['source']}")
+    if isinstance(params.get("valid_fraction"), int | float):
+        parts.append(f"{100 * params['valid_fraction']:.1f}% valid")
+    if isinstance(params.get("em_iterations"), int) and params["em_iterations"] > 0:
+        state = "converged" if params.get("em_converged") else "NOT converged"
+        parts.append(f"EM {params['em_iterations']} iterations ({state})")
+    return "".join(f", {p}" for p in parts)
+
+
 def _info(args: argparse.Namespace) -> int:
     info = AppearanceMap.load(args.map).info()
     if args.json:
@@ -139,7 +153,7 @@ def _info(args: argparse.Namespace) -> int:
         frac = f", {100 * ch['variance_fraction']:.1f}% of the variance" if "variance_fraction" in ch else ""
         lines.append(
             f"channel    {name}: {ch['n_features']} features, preprocess {ch['preprocess']}, "
-            f"{ch['size'][0]}x{ch['size'][1]}, {ch['method']}{frac}"
+            f"{ch['size'][0]}x{ch['size'][1]}, {ch['method']}{frac}{_em_summary(ch['params'])}"
         )
     lines.append(f"sha256     {info['sha256']}")
     print("\n".join(lines))

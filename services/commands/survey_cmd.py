@@ -2,11 +2,14 @@
 
     lino-loc survey --world office --step 0.75 --heading-step 15 --out DATASET
                     [--lighting tube|bulb|natural] [--scene-changes a,b]
-                    [--width 320 --height 240] [--seed N] [--no-stereo] [--overwrite] [--json]
+                    [--width 320 --height 240] [--seed N] [--no-stereo] [--dense-depth]
+                    [--overwrite] [--json]
 
 Poses: every ``--step`` metres over the world's mapped area and every ``--heading-step``
 DEGREES, skipping poses where the robot (radius ``--radius``) would touch furniture or
-walls; the same poses under every lighting. See :mod:`drivers.sim.survey`.
+walls; the same poses under every lighting. With stereo (the default) every row has the
+right image and the sparse disparity of the product's block matcher, as on the robot; the
+renderer's exact dense depth instead only with ``--dense-depth``. See :mod:`drivers.sim.survey`.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ def _run(args: argparse.Namespace) -> int:
             world, args.out, step=args.step, heading_step_rad=math.radians(args.heading_step),
             lighting=args.lighting, scene_changes=args.scene_changes, camera=camera, seed=args.seed,
             stereo=not args.no_stereo, overwrite=args.overwrite, radius=args.radius, progress=bar.update,
+            dense_depth=args.dense_depth,
         )
     finally:
         bar.close()
@@ -64,7 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "survey",
         help="render a survey of a simulated world into a dataset folder",
         description="Render the camera views on a grid of poses of a simulated world and write a "
-                    "dataset folder (images, depth, poses, condition; right images with stereo).",
+                    "dataset folder (images, poses, condition; with stereo the right images and the "
+                    "block matcher's sparse disparity; the renderer's dense depth instead with --dense-depth).",
     )
     p.add_argument("--world", default="office", help="world name (config/worlds/NAME.json) or path")
     p.add_argument("--step", type=float, default=0.75, help="grid step in metres (default 0.75)")
@@ -76,7 +81,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed")
     p.add_argument("--radius", type=float, default=0.25, help="robot radius for the collision check (m)")
-    p.add_argument("--no-stereo", action="store_true", help="do not render/store the right image")
+    p.add_argument("--no-stereo", action="store_true",
+                   help="do not render/store the right image (and so no disparity)")
+    p.add_argument("--dense-depth", action="store_true",
+                   help="store the renderer's exact dense depth instead of the matcher's sparse disparity "
+                        "(no stereo camera gives it; a map's disparity channel built from it says source "
+                        "dense-depth)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     p.add_argument("--json", action="store_true", help="print one JSON summary on stdout")
     p.set_defaults(func=_run)
