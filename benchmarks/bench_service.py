@@ -22,6 +22,7 @@ With ``--repeat R`` the run is repeated and the figures are medians (all runs ar
 Usage::
 
     python benchmarks/bench_service.py --seconds 30                      # the product's sim.toml
+    python benchmarks/bench_service.py --seconds 30 --no-disparity       # intensity alone
     python benchmarks/bench_service.py --seconds 20 --width 160 --height 120 --fps 10 --particles 500
 """
 
@@ -72,7 +73,8 @@ def _mem_mb(pid: int) -> tuple[float, float]:
 
 def _config(args: argparse.Namespace, tmp: Path, pub: str, rep: str) -> str:
     map_path = Path(args.map_cache).expanduser() / (
-        f"office-tube-75cm-15deg-5f-v{args.virtual_headings}-{args.width}x{args.height}.npz"
+        f"office-tube-75cm-15deg-5f-v{args.virtual_headings}-{args.width}x{args.height}"
+        + ("-disparity" if getattr(args, "disparity", False) else "") + ".npz"
     )
     return f"""
 [devices.camera]
@@ -99,6 +101,7 @@ width = {args.width}
 height = {args.height}
 features = 5
 virtual_headings = {args.virtual_headings}
+disparity = {"true" if getattr(args, "disparity", False) else "false"}
 [localizer.filter]
 n_particles = {args.particles}
 [active_vision]
@@ -229,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fps", type=float, default=15.0)
     p.add_argument("--particles", type=int, default=1000)
     p.add_argument("--no-active-vision", dest="active_vision", action="store_false")
+    p.add_argument("--no-disparity", dest="disparity", action="store_false",
+                   help="the map without its disparity channel (config/sim.toml's has it)")
     p.add_argument("--map-cache", default="~/.cache/lino-loc/maps", help="folder of the cached maps")
     p.add_argument("--virtual-headings", type=int, default=5,
                    help="map entries per survey image, as config/sim.toml (default %(default)s; 1: images alone)")

@@ -18,6 +18,7 @@ relearning buys.
 from __future__ import annotations
 
 import signal
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -92,3 +93,96 @@ def test_sim_rejects_an_unknown_switch_lighting_at_start(tmp_path: Path, bad: st
 
     assert main(["sim", "--switch-lighting", bad, "--duration", "1"]) == 2
     assert bad in capsys.readouterr().err
+
+
+#: The map of the service with depth (config/sim.toml's setting at the camera's 320 x 240),
+#: cached beside the intensity-only one.
+DEPTH_MAP_CACHE = MAP_CACHE.with_name("office-320x240-75cm-15deg-5f-v5-disparity.npz")
+SWITCH_WINDOW_S = 60.0
+
+
+def depth_config_text(*, head: str = "auto", odometry: str = "auto", camera: str = "auto", pub: str, rep: str,
+                      state: Path) -> str:
+    return f"""
+[devices.camera]
+kind = "sim"
+[devices.camera.sim]
+endpoint = "{camera}"
+world = "office"
+width = 320
+height = 240
+fps = 5.0
+[devices.head]
+kind = "dynamixel"
+port = "{head}"
+[devices.odometry]
+kind = "serial"
+port = "{odometry}"
+[map]
+path = "{DEPTH_MAP_CACHE}"
+[map.build]
+world = "office"
+step = 0.75
+heading_step_deg = 15.0
+features = 5
+virtual_headings = 5
+disparity = true
+[localizer.filter]
+n_particles = 1000
+[endpoints]
+pub = "{pub}"
+rep = "{rep}"
+[publish]
+truth = true
+[persistence]
+state_file = "{state}"
+restore = false
+[logging]
+level = "INFO"
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # a first run also builds the map with its disparity channel
+def test_with_depth_the_daemon_stays_within_half_a_metre_after_the_lights_switch(tmp_path: Path) -> None:
+    """The simulated service with both channels (config/sim.toml's map: the office every 75 cm
+    / 15 deg, 5 features, 5 virtual headings, plus the disparity channel of the survey's
+    stereo pairs through the product's matcher), the camera at 320 x 240 and 5 fps, the robot
+    driving. Once the daemon tracks under the mapping light, SIGUSR2 switches the lights to
+    bulb; over the next ``SWITCH_WINDOW_S`` seconds the median position error of the
+    daemon's poses against the simulator's truth is below 0.5 m."""
+    from services.config import load_config
+    from services.sim_launcher import ensure_sim_map
+
+    state = tmp_path / "state.json"
+    pub, rep = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+    sim_cfg = tmp_path / "sim.toml"
+    sim_cfg.write_text(depth_config_text(pub=pub, rep=rep, state=state))
+    DEPTH_MAP_CACHE.parent.mkdir(parents=True, exist_ok=True)
+    amap, _ = ensure_sim_map(load_config(sim_cfg))
+    assert "disparity" in amap.channels
+    sim, info = start_sim(sim_cfg, tmp_path / "sim.log", "--switch-lighting", "bulb", "--seed", "1")
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text(depth_config_text(head=info["head"], odometry=info["odometry"], camera=info["camera"],
+                                     pub=pub, rep=rep, state=state))
+    log = tmp_path / "daemon.log"
+    stream = Stream(pub, info["truth"])
+    daemon = start_daemon(cfg, log)
+    try:
+        stream.wait_for(lambda: [p["state"] for p in stream.poses[-5:]] == ["tracking"] * 5 or None, 120.0,
+                        "tracking under the mapping light")
+        sim.send_signal(signal.SIGUSR2)
+        t_switch = time.time()
+        time.sleep(SWITCH_WINDOW_S)
+        errors = [e for p in stream.poses_since(t_switch) if (e := stream.error(p)) is not None]
+        assert len(errors) >= 0.5 * 5.0 * SWITCH_WINDOW_S, f"{len(errors)} poses compared with the truth"
+        median = statistics.median(errors)
+        print(f"after the switch: median error {median:.3f} m over {len(errors)} poses, "
+              f"max {max(errors):.2f} m")
+        assert "lighting switched to bulb" in (tmp_path / "sim.log").read_text()
+        assert median < 0.5, f"median error {median:.2f} m over the {SWITCH_WINDOW_S:.0f} s after the switch"
+        assert daemon.poll() is None and sim.poll() is None
+    finally:
+        stop(daemon)
+        stop(sim)
+        stream.close()
