@@ -151,7 +151,10 @@ def _posterior(
     M[:, np.arange(d), np.arange(d)] += sigma2
     b = gx[:, :d] - gm[:, P : P + d]  # W_o^T (x_o - mu_o)
     r2 = xx - 2.0 * gx[:, d] + gm[:, P + d]  # |x_o - mu_o|^2
-    L = np.linalg.cholesky(M)
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        L = np.linalg.cholesky(_restore_definite(M, sigma2))
     eye = np.broadcast_to(np.eye(d), M.shape)
     Linv = np.linalg.solve(L, eye)
     Minv = np.einsum("nji,njk->nik", Linv, Linv)
@@ -164,6 +167,17 @@ def _posterior(
     ll = -0.5 * (rowcount * _LOG_2PI + logdet + quad)
     ll = np.where(rowcount > 0, ll, 0.0)
     return Ez, Minv, ll
+
+
+def _restore_definite(M: F64, sigma2: float) -> F64:
+    """The matrices ``M = W_o^T W_o + sigma^2 I`` (B, d, d) with each one's diagonal raised so
+    that its smallest eigenvalue is at least ``sigma2``, as it is in exact arithmetic: the
+    products of the mask with ``w_k w_l`` are summed in the data's dtype (float32 for maps),
+    and over thousands of pixels their rounding can make a near-singular ``W_o^T W_o``
+    indefinite. Matrices already above the bound are returned unchanged."""
+    lam = np.linalg.eigvalsh(M)[:, 0]
+    shift = np.maximum(float(sigma2) - lam, 0.0)
+    return M + shift[:, None, None] * np.eye(M.shape[1])
 
 
 def _basis(W: F64) -> tuple[F64, F64]:

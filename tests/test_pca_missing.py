@@ -306,3 +306,20 @@ def test_pairwise_covariance_is_the_available_case_covariance(dtype):
     want = (xc.T @ xc) / np.maximum(m.T.astype(float) @ m, 1.0)
     assert np.allclose(S, want, atol=1e-5 if dtype == np.float32 else 1e-12)
     assert np.array_equal(S, S.T)
+
+
+def test_a_posterior_matrix_made_indefinite_by_rounding_is_restored_to_its_exact_bound() -> None:
+    """M = W_o^T W_o + sigma^2 I has every eigenvalue >= sigma^2; float32 sums over thousands
+    of pixels can break that (a real map's disparity did): the diagonal is raised back to the
+    bound, and a matrix that is fine is left as it is."""
+    from lino_loc.pca_missing import _restore_definite
+
+    rng = np.random.default_rng(0)
+    good = rng.normal(size=(3, 4, 4))
+    good = good @ good.transpose(0, 2, 1) + 0.5 * np.eye(4)
+    bad = good.copy()
+    bad[1] -= (np.linalg.eigvalsh(bad[1])[0] + 0.3) * np.eye(4)  # smallest eigenvalue -0.3
+    out = _restore_definite(bad, 0.5)
+    np.testing.assert_array_equal(out[[0, 2]], bad[[0, 2]])
+    assert np.linalg.eigvalsh(out[1])[0] == pytest.approx(0.5)
+    np.linalg.cholesky(out)  # positive definite
