@@ -65,7 +65,44 @@ MAX_SUBSCRIPTION_MESSAGES = 1000
 PUB_MAX_FRAME_BYTES = 512
 
 
-class PosePort:
+class NonBlockingSender:
+    """Sends on ``self._sock`` that never block, serialized by a lock and counted: ``sent``
+    per topic, ``dropped`` when ZeroMQ refused (``EAGAIN``: a full queue, or another error,
+    logged at DEBUG). Subclasses set ``_sock`` and may do work before each send
+    (:meth:`_before_send`, lock held)."""
+
+    _sock: zmq.Socket[Any]
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._closed = False
+        self.sent: Counter[str] = Counter()
+        self.dropped = 0
+
+    def _before_send(self) -> None:
+        """Called with the lock held before every send."""
+
+    def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:
+        """Send raw frames without blocking; False (and counted) if ZeroMQ refused."""
+        name = topic or bytes(frames[0]).decode("ascii", errors="replace")
+        with self._lock:
+            if self._closed:
+                return False
+            try:
+                self._before_send()
+                self._sock.send_multipart(frames, flags=zmq.NOBLOCK, copy=True)
+            except zmq.Again:
+                self.dropped += 1
+                return False
+            except zmq.ZMQError as exc:
+                self.dropped += 1
+                log.debug("publish %s failed: %s", name, exc)
+                return False
+        self.sent[name] += 1
+        return True
+
+
+class PosePort(NonBlockingSender):
     """Non-blocking XPUB of ``[topic, json]`` messages with its subscriptions counted and
     capped (module docstring)."""
 
@@ -74,8 +111,8 @@ class PosePort:
     ) -> None:
         """Bind ``endpoint``; with ``curve`` keys, as a CURVE server (services/curve_auth.py).
         Raises OSError when the endpoint cannot be bound or the keys cannot be read."""
+        super().__init__()
         self.endpoint = endpoint
-        self._lock = threading.Lock()
         self._sock = ctx.socket(zmq.XPUB)
         self._sock.setsockopt(zmq.SNDHWM, int(sndhwm))
         self._sock.setsockopt(zmq.LINGER, 0)
@@ -93,11 +130,8 @@ class PosePort:
             raise OSError(f"cannot bind the PUB socket to {endpoint}: {exc}") from exc
         self.last_endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.guard = SubscriptionGuard(self._sock)
-        self.sent: Counter[str] = Counter()
-        self.dropped = 0
         self.subscriptions: set[bytes] = set()
         self.ignored_subscriptions = 0
-        self._closed = False
 
     @property
     def socket(self) -> zmq.Socket[Any]:
@@ -170,24 +204,8 @@ class PosePort:
                 "refused_handshakes": self.guard.refused_handshakes,
             }
 
-    def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:
-        """Send raw frames without blocking; False (and counted) if ZeroMQ refused."""
-        name = topic or bytes(frames[0]).decode("ascii", errors="replace")
-        with self._lock:
-            if self._closed:
-                return False
-            try:
-                self._drain_subscriptions()
-                self._sock.send_multipart(frames, flags=zmq.NOBLOCK, copy=True)
-            except zmq.Again:
-                self.dropped += 1
-                return False
-            except zmq.ZMQError as exc:
-                self.dropped += 1
-                log.debug("publish %s failed: %s", name, exc)
-                return False
-        self.sent[name] += 1
-        return True
+    def _before_send(self) -> None:
+        self._drain_subscriptions()
 
     def close(self) -> None:
         with self._lock:

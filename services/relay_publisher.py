@@ -31,9 +31,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 import services
 from services.curve_auth import CurveConfig
 from services.messages import PosePortInfo, encode
+from services.pose_port import NonBlockingSender
 from services.pose_relay import COUNTERS_MARK, EXIT_MEMORY, RelaySettings
 from services.topics import TOPIC_PREFIXES
 
@@ -123,7 +122,7 @@ class _Child:
             self.proc.stdout.close()
 
 
-class RelayedPublisher:
+class RelayedPublisher(NonBlockingSender):
     """Publishes through the pose relay (module docstring); thread-safe."""
 
     def __init__(
@@ -136,11 +135,11 @@ class RelayedPublisher:
     ) -> None:
         """Bind the private socket and start the relay on ``endpoint``. Raises OSError with
         one line when the relay cannot bind it or does not start."""
+        super().__init__()
         self.endpoint = endpoint
         self.relay_cfg = relay or RelayConfig()
         self._curve = curve or CurveConfig()
         self._sndhwm = int(sndhwm)
-        self._lock = threading.Lock()
         self._dir = Path(tempfile.mkdtemp(prefix="lino-loc-relay-"))  # mode 0700
         self._upstream = f"ipc://{self._dir / 'pose'}"
         self._sock = ctx.socket(zmq.XPUB)
@@ -148,12 +147,9 @@ class RelayedPublisher:
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.setsockopt(zmq.XPUB_VERBOSE, 0)
         self._sock.setsockopt(zmq.MAXMSGSIZE, RELAY_MAX_FRAME_BYTES)
-        self.sent: Counter[str] = Counter()
-        self.dropped = 0
         self.subscriptions: set[bytes] = set()
         self.restarts = 0
         self._relay_counters: dict[str, int] = {}
-        self._closed = False
         self._delay = RESTART_DELAY_S
         self._restart_at: float | None = None
         self._checked = 0.0
@@ -273,21 +269,8 @@ class RelayedPublisher:
                 relay_resident_bytes=c.get("resident_bytes"), relay_running=self._child is not None,
             )
 
-    def send_frames(self, frames: list[bytes], topic: str | None = None) -> bool:
-        """Send raw frames to the relay without blocking; False (and counted) if ZeroMQ refused."""
-        name = topic or bytes(frames[0]).decode("ascii", errors="replace")
-        with self._lock:
-            if self._closed:
-                return False
-            try:
-                self._refresh()
-                self._sock.send_multipart(frames, flags=zmq.NOBLOCK, copy=True)
-            except zmq.ZMQError as exc:
-                self.dropped += 1
-                log.debug("publish %s failed: %s", name, exc)
-                return False
-        self.sent[name] += 1
-        return True
+    def _before_send(self) -> None:
+        self._refresh()
 
     def publish(self, topic: str, message: BaseModel) -> bool:
         """Publish a pydantic message on ``topic`` (validated against the topic's model)."""
