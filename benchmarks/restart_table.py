@@ -1,7 +1,9 @@
 """The restart table: what the daemon says after ``kill -9`` and a restart, against the truth.
 
-Runs ``lino-loc sim`` (the simulated office, the robot wandering; 80 x 60 images at 5 fps,
-1000 particles, the map surveyed every 50 cm and 15 deg, as the integration tests) and
+Runs ``lino-loc sim`` (the simulated office, the robot wandering; by default the product's
+simulated service: 320 x 240 images, ``config/sim.toml``'s map, every 75 cm and 15 deg with
+both channels; ``--map tests`` for the integration tests' map, every 50 cm and 15 deg,
+intensity alone, with ``--size 80x60`` as they run it; 5 fps, 1000 particles) and
 ``lino-loc run`` as real processes, subscribes to the daemon's ``pose`` topic and to the
 simulator's ``truth`` topic, and for each row:
 
@@ -24,7 +26,7 @@ Usage::
 
     python benchmarks/restart_table.py                 # all rows, a table
     python benchmarks/restart_table.py --json --rows 1s,other-map --window 40 --repeat 3
-    python benchmarks/restart_table.py --size 320x240     # the product's images (its own map)
+    python benchmarks/restart_table.py --map tests --size 80x60   # the integration tests' service
 """
 
 from __future__ import annotations
@@ -236,7 +238,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--converge-timeout", type=float, default=120.0, help="s to wait for tracking before a kill")
     ap.add_argument("--repeat", type=int, default=1, help="run each row this many times")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
-    ap.add_argument("--size", default="80x60", help="camera and map images, WIDTHxHEIGHT (the product's: 320x240)")
+    ap.add_argument("--size", default="320x240", help="camera and map images, WIDTHxHEIGHT (the product's: 320x240)")
+    ap.add_argument("--map", choices=("product", "tests"), default="product",
+                    help="config/sim.toml's map (75 cm, both channels) or the integration tests' (50 cm, intensity)")
     args = ap.parse_args(argv)
     names = [n for n in args.rows.split(",") if n]
     unknown = [n for n in names if n not in ROWS]
@@ -253,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         print(f"--size: expected WIDTHxHEIGHT (at least 8x8), got {args.size!r}", file=sys.stderr)
         return 2
-    settings = dataclasses.replace(SETTINGS, width=width, height=height)
+    settings = dataclasses.replace(SETTINGS, width=width, height=height, product_map=args.map == "product")
     rows = run_rows(names, args.window, args.converge_timeout, args.repeat, settings)
     if args.json:
         print(json.dumps(rows, indent=1))

@@ -11,7 +11,9 @@ daemon is down) and keeps them with their reception times.
 The map is the integration tests' (the office surveyed every 50 cm and 15 deg, 80 x 60
 images, 5 features), built once by :func:`services.sim_launcher.ensure_sim_map` and cached
 in the temporary folder; for other image sizes (``Settings.width`` x ``height``) the same
-survey at that size (:func:`map_cache`).
+survey at that size (:func:`map_cache`). ``Settings.product_map`` uses the product's simulated
+map instead (``config/sim.toml``'s ``[map.build]``: every 75 cm and 15 deg, 5 features, 5
+virtual headings, the disparity channel fused with intensity), cached beside it.
 """
 
 from __future__ import annotations
@@ -41,6 +43,19 @@ MAP_CACHE = Path(tempfile.gettempdir()) / "lino-loc-test-maps" / "office-80x60-5
 def map_cache(width: int = 80, height: int = 60) -> Path:
     """The cached map for images of ``width`` x ``height`` (80 x 60: :data:`MAP_CACHE`)."""
     return MAP_CACHE.with_name(f"office-{width}x{height}-50cm-15deg-5f.npz")
+
+
+def product_map_cache(width: int = 320, height: int = 240) -> Path:
+    """The cached map of ``config/sim.toml``'s ``[map.build]`` for ``width`` x ``height`` images."""
+    return MAP_CACHE.with_name(f"office-{width}x{height}-75cm-15deg-5f-v5-disparity.npz")
+
+
+#: ``config/sim.toml``'s ``[map.build]`` (the simulated service's map), images at the camera's size.
+PRODUCT_MAP_BUILD = """step = 0.75
+heading_step_deg = 15.0
+features = 5
+virtual_headings = 5
+disparity = true"""
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 _PORTS = random.Random(os.getpid())
 
@@ -76,6 +91,19 @@ class Settings:
     fps: float = 15.0
     particles: int = 1000
     save_period_s: float = 1.0
+    product_map: bool = False  # config/sim.toml's map (both channels) instead of the tests' 50 cm one
+
+
+def _map_section(s: Settings) -> str:
+    path = product_map_cache(s.width, s.height) if s.product_map else map_cache(s.width, s.height)
+    build = PRODUCT_MAP_BUILD if s.product_map else "step = 0.5\nheading_step_deg = 15.0\nfeatures = 5"
+    return f"""[map]
+path = "{path}"
+[map.build]
+world = "office"
+width = {s.width}
+height = {s.height}
+{build}"""
 
 
 def config_text(s: Settings, tmp: Path, *, head: str, odometry: str, camera: str, pub: str, rep: str) -> str:
@@ -94,15 +122,7 @@ port = "{head}"
 [devices.odometry]
 kind = "serial"
 port = "{odometry}"
-[map]
-path = "{map_cache(s.width, s.height)}"
-[map.build]
-world = "office"
-step = 0.5
-heading_step_deg = 15.0
-width = {s.width}
-height = {s.height}
-features = 5
+{_map_section(s)}
 [localizer.filter]
 n_particles = {s.particles}
 [endpoints]

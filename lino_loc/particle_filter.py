@@ -104,9 +104,10 @@ FreeSpace = Callable[[FloatArray], NDArray[np.bool_]]
 #: ``tracking`` (on top of ``filter.lost.confirm_views``): the saved pose is a prior of
 #: unknown age, and a belief concentrated near it by one ambiguous view is often wrong
 #: (the restart table, benchmarks/restart_table.py, in docs/results.md). The head's turns
-#: count as views too (``lino_loc.lost_detection.camera_increment``): a few looks of active
-#: vision give 3 views, too few to tell a pose 0.5 m off on a driving robot; 5 do.
-RECALL_CONFIRM_VIEWS = 5.0
+#: count as views too (``lino_loc.lost_detection.camera_increment``). A belief pulled away
+#: from the saved pose by the views slides towards the truth while it already hits them; the
+#: run must outlast that slide (docs/results.md, "Honest restarts").
+RECALL_CONFIRM_VIEWS = 8.0
 
 __all__ = [
     "AuxiliaryParticleFilter",

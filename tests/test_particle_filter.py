@@ -418,6 +418,20 @@ def test_an_unconfirmed_pose_is_global_until_the_views_confirm_it() -> None:
     assert all(e < 0.5 for s, e in zip(states, errors, strict=True) if s == "tracking"), (states, errors)
 
 
+def test_a_recalled_pose_needs_a_run_of_hit_views_before_tracking() -> None:
+    """Even a right recalled pose, whose every view hits, is ``tracking`` only once the run of
+    hit views reaches RECALL_CONFIRM_VIEWS (each update of the drive is less than one view)."""
+    from lino_loc.lost_detection import independent_views
+    from lino_loc.particle_filter import RECALL_CONFIRM_VIEWS
+
+    _, states, _ = _recalled_run([2.0, 2.0, 0.3], [2.0, 2.0, 0.3], updates=40)
+    k = states.index("tracking")
+    per_update = independent_views(np.array([0.1, 0.0, 0.05]))
+    assert per_update < 1.0
+    assert (k + 1) * per_update >= RECALL_CONFIRM_VIEWS, (k, states)
+    assert (k + 1) * per_update < RECALL_CONFIRM_VIEWS + 3.0, (k, states)  # and soon after
+
+
 def test_a_wrong_recalled_pose_is_never_reported_tracking_while_wrong() -> None:
     """A recalled pose 2 m from the truth (the robot moved while the daemon was down): no
     ``tracking`` estimate is more than 0.5 m wrong, and the search finds the robot."""
