@@ -586,10 +586,8 @@ def fit_pca_missing(
     if not (math.isfinite(prior_weight) and prior_weight >= 0.0):
         raise LinoLocError(f"prior_weight must be finite and >= 0, got {prior_weight}")
     rng = np.random.default_rng(seed)
-    cols = np.isfinite(a).any(0)  # pixels never observed: no parameters, zeros in the model
     full_d = a.shape[1]
-    if not cols.all():
-        a = a[:, cols]
+    a, cols = _observed_part(a)
     data, mu0, colcount = _centred_data(a, dtype, min_sigma2, px_em)
     W, sigma2 = _start(data, d, prior_weight, rng)
     mu = np.zeros(data.X0.shape[1])
@@ -598,6 +596,22 @@ def fit_pca_missing(
         log.info("EM-PCA stopped after max_iter=%d iterations without reaching the tolerance", fit.n_iter)
     model = _fitted_model(fit, mu0, data.seen, colcount)
     return model if cols.all() else _expanded(model, cols, full_d)
+
+
+def _observed_part(a: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:
+    """The rows and columns of (N, D) ``a`` with at least one finite value, and the mask
+    (D,) of those columns. Pixels never observed get no parameters (zeros in the model);
+    samples with no valid pixel add nothing to any E- or M-step sum (nor to the prior's
+    weight, which counts samples with data), so dropping them leaves the MAP fit's iterates
+    as they are (the ML fit's start, PCA of the mean-imputed data, no longer counts them)
+    and saves their share of the (N, D) products."""
+    finite = np.isfinite(a)
+    cols, rows = finite.any(0), finite.any(1)
+    if not rows.all():
+        a = a[rows]
+    if not cols.all():
+        a = a[:, cols]
+    return a, cols
 
 
 def _start(data: _EMData, d: int, prior_weight: float, rng: np.random.Generator) -> tuple[F64, float]:

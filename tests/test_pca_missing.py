@@ -396,3 +396,17 @@ def test_the_objective_tolerance_is_absolute_per_value():
     assert a.converged and b.converged
     assert a.n_iter == b.n_iter
     assert _max_angle_deg(a.components, b.components) < 0.1
+
+
+def test_samples_without_a_valid_pixel_change_nothing():
+    """Rows with no valid value add nothing to the MAP fit (they are dropped before it):
+    the same model with or without them, and their features are the prior mean."""
+    x = _blocks_no_gap(3, n=300, blocks=12, keep=3)
+    padded = np.vstack([x[:100], np.full((40, x.shape[1]), np.nan), x[100:]])
+    a = fit_pca_missing(x, 8, seed=0)
+    b = fit_pca_missing(padded, 8, seed=0)
+    assert a.n_iter == b.n_iter and a.converged and b.converged
+    assert np.allclose(a.components, b.components, atol=1e-9)
+    assert a.sigma2 == pytest.approx(b.sigma2, rel=1e-12)
+    y, has = b.project(padded, return_valid=True)
+    assert not has[100:140].any() and np.all(y[100:140] == 0.0)
