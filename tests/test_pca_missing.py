@@ -410,3 +410,30 @@ def test_samples_without_a_valid_pixel_change_nothing():
     assert a.sigma2 == pytest.approx(b.sigma2, rel=1e-12)
     y, has = b.project(padded, return_valid=True)
     assert not has[100:140].any() and np.all(y[100:140] == 0.0)
+
+
+def test_the_batched_posterior_is_the_per_sample_one():
+    """The E-step's batched products and inverses give, sample by sample, the posterior of
+    the observed pixels alone: M_n = W_o^T W_o + sigma^2 I, E[z] = M_n^-1 W_o^T (x_o - mu_o),
+    and log N(x_o | mu_o, W_o W_o^T + sigma^2 I)."""
+    from scipy.stats import multivariate_normal
+
+    from lino_loc.pca_missing import _posterior
+
+    rng = np.random.default_rng(14)
+    n, D, d = 12, 30, 4
+    W, mu, s2 = rng.normal(size=(D, d)), rng.normal(size=D), 0.7
+    x = rng.normal(size=(n, D)) * 2.0
+    x[rng.random(x.shape) < 0.5] = np.nan
+    x[3] = np.nan
+    mask = np.isfinite(x)
+    X0 = np.where(mask, x, 0.0)
+    Ez, Minv, ll = _posterior(W, mu, s2, X0, mask.astype(float), mask.sum(1).astype(float),
+                              np.einsum("nj,nj->n", X0, X0))
+    for i in range(n):
+        o = mask[i]
+        M = W[o].T @ W[o] + s2 * np.eye(d)
+        assert np.allclose(Minv[i], np.linalg.inv(M), atol=1e-12)
+        assert np.allclose(Ez[i], np.linalg.solve(M, W[o].T @ (x[i, o] - mu[o])), atol=1e-12)
+        want = 0.0 if not o.any() else multivariate_normal(mu[o], W[o] @ W[o].T + s2 * np.eye(o.sum())).logpdf(x[i, o])
+        assert ll[i] == pytest.approx(want, rel=1e-10, abs=1e-10)
