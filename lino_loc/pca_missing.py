@@ -362,11 +362,10 @@ def _init_subspace(Xc: NDArray, d: int, rng: np.random.Generator) -> tuple[F64, 
 DEFAULT_PRIOR_WEIGHT = 0.1
 
 #: Default stopping tolerance: the objective's change over one EM iteration, in nats per
-#: observed value and pseudo-value. On the survey disparity of the lab, the office and the
-#: corridor (2.5-5.8 million values, 20 x 3.6 thousand loadings) it stops after 13-70
-#: iterations with a remaining gain to the float64 fixed point of a few hundred nats in all,
-#: far inside the posterior's own spread (about half the number of parameters, ~4e4 nats),
-#: and within about a degree of where float32 products stop improving at all.
+#: observed value and pseudo-value (see :func:`fit_pca_missing`). That is a change of the
+#: log posterior of tol x (number of values) per iteration, tens of nats for a survey's
+#: millions of disparity values, far inside the posterior's own spread (of the order of
+#: half the number of parameters, D (d + 1) / 2 nats: tens of thousands for a map).
 DEFAULT_TOL = 5e-6
 
 _SOLVE_BLOCK = 512  # pixels per batch of M-step solves (bounds the (D, d+1, d+1) temporaries)
