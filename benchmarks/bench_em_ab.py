@@ -21,6 +21,10 @@ intensity,disparity`` does) is timed instead, the disparity channel's EM being t
 
     python benchmarks/bench_em_ab.py --data maps.npy [--baseline old.py] [--repeats 3]
     python benchmarks/bench_em_ab.py --dataset SURVEY [--baseline old.py] [--repeats 3]
+        [--d 5 --virtual-headings 5]     # the simulated service's map (config/sim.toml)
+
+``new_against_old``: the largest and second principal angles between the two variants'
+subspaces (last runs) and the fraction of the old model's variance outside the new span.
 """
 
 from __future__ import annotations
@@ -66,7 +70,7 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def _fit_once(fit: FitFn, X: np.ndarray, d: int, max_iter: int) -> dict:
+def _fit_once(fit: FitFn, X: np.ndarray, d: int, max_iter: int) -> tuple[dict, Any]:
     tracemalloc.start()
     tracemalloc.reset_peak()
     c0, t0 = _cpu(), time.perf_counter()
@@ -75,13 +79,17 @@ def _fit_once(fit: FitFn, X: np.ndarray, d: int, max_iter: int) -> dict:
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     return {"wall_s": wall, "cpu_s": cpu, "peak_mb": peak / 2**20, "iterations": model.n_iter,
-            "converged": bool(model.converged), "objective": float(model.log_likelihood[-1])}
+            "converged": bool(model.converged), "objective": float(model.log_likelihood[-1])}, model
 
 
-def _build_once(fit: FitFn, dataset: Path, d: int) -> dict:
-    """The whole map build with the disparity channel's EM replaced by ``fit``."""
+def _build_once(fit: FitFn, dataset: Path, d: int, virtual: int) -> tuple[dict, Any]:
+    """The whole map build with the disparity channel's EM replaced by ``fit`` (``virtual``
+    headings 3 deg apart per image when > 1, as the simulated service's map)."""
+    import math
+
     from lino_loc.appearance_map import build_map
     from lino_loc.dataset import Dataset
+    from lino_loc.virtual_views import offsets
 
     saved = pca_missing.fit_pca_missing
     pca_missing.fit_pca_missing = fit  # build_disparity_channel imports it at call time
@@ -89,7 +97,8 @@ def _build_once(fit: FitFn, dataset: Path, d: int) -> dict:
         tracemalloc.start()
         tracemalloc.reset_peak()
         c0, t0 = _cpu(), time.perf_counter()
-        amap = build_map(Dataset.open(dataset), n_features=d, channels=("intensity", "disparity"))
+        amap = build_map(Dataset.open(dataset), n_features=d, channels=("intensity", "disparity"),
+                         virtual_offsets=None if virtual <= 1 else offsets(math.radians(3.0), virtual))
         wall, cpu = time.perf_counter() - t0, _cpu() - c0
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
@@ -99,7 +108,19 @@ def _build_once(fit: FitFn, dataset: Path, d: int) -> dict:
     model = amap.channels["disparity"].pca
     return {"wall_s": wall, "cpu_s": cpu, "peak_mb": peak / 2**20, "iterations": model.n_iter,
             "converged": bool(model.converged), "valid_fraction": p.get("valid_fraction"),
-            "source": p.get("source")}
+            "source": p.get("source")}, model
+
+
+def _agreement(a: Any, b: Any) -> dict:
+    """How the two variants' subspaces differ: the largest and second largest principal
+    angles (degrees), and the fraction of b's model variance outside span(a)."""
+    from scipy.linalg import subspace_angles
+
+    ang = np.sort(np.degrees(subspace_angles(a.components.T, b.components.T)))[::-1]
+    proj = a.components @ b.components.T  # (d, d)
+    lost = 1.0 - float(np.sum(b.explained_variance * np.sum(proj**2, axis=0)) / np.sum(b.explained_variance))
+    return {"max_angle_deg": round(float(ang[0]), 4), "second_angle_deg": round(float(ang[min(1, len(ang) - 1)]), 4),
+            "variance_outside": lost}
 
 
 def _summary(runs: list[dict]) -> dict:
@@ -121,17 +142,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--d", type=int, default=20)
     ap.add_argument("--max-iter", type=int, default=100)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--virtual-headings", type=int, default=1, help="with --dataset: map entries per image")
     args = ap.parse_args(argv)
     variants = {"old": _baseline(args.baseline), "new": pca_missing.fit_pca_missing}
     X = np.load(args.data) if args.data else None
     runs: dict[str, list[dict]] = {k: [] for k in variants}
+    models: dict[str, Any] = {}
     load = [os.getloadavg()]
     for _ in range(args.repeats):
         for name, fit in variants.items():  # interleaved: A B A B ...
             if X is not None:
-                runs[name].append(_fit_once(fit, X, args.d, args.max_iter))
+                run, models[name] = _fit_once(fit, X, args.d, args.max_iter)
             else:
-                runs[name].append(_build_once(fit, Path(args.dataset), args.d))
+                run, models[name] = _build_once(fit, Path(args.dataset), args.d, args.virtual_headings)
+            runs[name].append(run)
             load.append(os.getloadavg())
     result = {
         "benchmark": "em_ab",
@@ -144,7 +168,9 @@ def main(argv: list[str] | None = None) -> int:
         "missing_fraction": round(float(np.isnan(X).mean()), 4) if X is not None else None,
         "baseline": args.baseline or "fit_pca_missing(prior_weight=0)",
         "d": args.d, "max_iter": args.max_iter, "repeats": args.repeats,
+        "virtual_headings": args.virtual_headings if args.dataset else None,
         **{name: _summary(r) for name, r in runs.items()},
+        "new_against_old": _agreement(models["new"], models["old"]),
     }
     wall = result["new"]["wall_s"]["median"] / max(result["old"]["wall_s"]["median"], 1e-9)
     result["new_over_old_wall"] = round(wall, 3)

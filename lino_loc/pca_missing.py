@@ -27,7 +27,11 @@ nu *complete* pseudo-samples of second moment S, an inverse-Wishart-type prior o
 mode is PPCA of S (Tipping & Bishop's closed form). It fills in what the data leave
 undetermined and elsewhere weighs a tenth as much as the data; ``prior_weight = 0`` is the ML fit
 (flat prior). On complete data ``S`` is the sample covariance, and the MAP subspace is
-PCA's for every nu. mu and sigma^2 have flat priors.
+PCA's for every nu. mu and sigma^2 have flat priors. An available-case covariance need not
+be positive semi-definite; where the mean of its eigenvalues beyond the d-th is not
+positive the prior is improper (the objective grows without bound as sigma^2 -> 0), and
+those eigenvalues are raised just enough to make it proper (:func:`_proper_shift`; S is
+unchanged otherwise).
 
 EM for L (exact: the pseudo-samples are complete data of the same model):
 
@@ -101,12 +105,21 @@ def _pairs(a: F64, iu: tuple[NDArray[np.intp], NDArray[np.intp]]) -> F64:
     return a[..., iu[0]] * a[..., iu[1]]
 
 
+def _sym_index(d: int) -> NDArray[np.intp]:
+    """(d * d,) position in the packed upper triangle (:func:`_triu` order) of each entry
+    (k, l) of a d x d symmetric matrix, row-major."""
+    pos = np.empty((d, d), dtype=np.intp)
+    iu = _triu(d)
+    pos[iu[0], iu[1]] = np.arange(iu[0].size)
+    pos[iu[1], iu[0]] = pos[iu[0], iu[1]]
+    return pos.reshape(-1)
+
+
 def _unpack_sym(flat: F64, d: int, iu: tuple[NDArray[np.intp], NDArray[np.intp]]) -> F64:
-    """(B, P) upper-triangle entries -> (B, d, d) symmetric matrices."""
-    out = np.zeros((flat.shape[0], d, d), dtype=np.float64)
-    out[:, iu[0], iu[1]] = flat
-    out[:, iu[1], iu[0]] = flat
-    return out
+    """(B, P) upper-triangle entries (in ``iu`` = :func:`_triu` order) -> (B, d, d)
+    symmetric float64 matrices, by one gather."""
+    del iu  # the order is _triu's
+    return np.asarray(flat, dtype=np.float64)[:, _sym_index(d)].reshape(flat.shape[0], d, d)
 
 
 def _pack_sym(mats: F64, iu: tuple[NDArray[np.intp], NDArray[np.intp]]) -> F64:
@@ -154,10 +167,9 @@ def _posterior(
     try:
         L = np.linalg.cholesky(M)
     except np.linalg.LinAlgError:
-        L = np.linalg.cholesky(_restore_definite(M, sigma2))
-    eye = np.broadcast_to(np.eye(d), M.shape)
-    Linv = np.linalg.solve(L, eye)
-    Minv = np.einsum("nji,njk->nik", Linv, Linv)
+        M = _restore_definite(M, sigma2)
+        L = np.linalg.cholesky(M)
+    Minv = np.linalg.inv(M)  # batched LU: cheaper than the inverse from L in numpy
     Ez = np.einsum("nij,nj->ni", Minv, b)
     # x_o ~ N(mu_o, C), C = W_o W_o^T + sigma^2 I: log|C| by the determinant lemma,
     # r^T C^-1 r = (|r|^2 - b^T M^-1 b) / sigma^2 by Woodbury.
@@ -349,6 +361,13 @@ def _init_subspace(Xc: NDArray, d: int, rng: np.random.Generator) -> tuple[F64, 
 #: (nu = weight x N pseudo-samples; see :func:`fit_pca_missing`).
 DEFAULT_PRIOR_WEIGHT = 0.1
 
+#: Default stopping tolerance: the objective's change over one EM iteration, in nats per
+#: observed value and pseudo-value (see :func:`fit_pca_missing`). That is a change of the
+#: log posterior of tol x (number of values) per iteration, tens of nats for a survey's
+#: millions of disparity values, far inside the posterior's own spread (of the order of
+#: half the number of parameters, D (d + 1) / 2 nats: tens of thousands for a map).
+DEFAULT_TOL = 5e-6
+
 _SOLVE_BLOCK = 512  # pixels per batch of M-step solves (bounds the (D, d+1, d+1) temporaries)
 
 
@@ -523,7 +542,7 @@ def fit_pca_missing(
     n_components: int,
     *,
     max_iter: int = 200,
-    tol: float = 1e-6,
+    tol: float = DEFAULT_TOL,
     seed: int = 0,
     subspace_tol: float = 1e-6,
     min_sigma2: float = 1e-9,
@@ -539,11 +558,12 @@ def fit_pca_missing(
     of the prior on the covariance in samples per sample with data; 0 is the ML fit. With
     the prior the start is PPCA of the pairwise-available covariance S; without it plain
     PCA of the mean-imputed data (``seed`` drives its randomized SVD on large problems).
-    Stops when the relative change of the objective (per observed value) over one EM
-    iteration falls below ``tol``; or when one iteration turns the principal subspace by
-    less than ``subspace_tol`` radians (largest principal angle between span(W) before and
-    after) while W's singular values and sigma^2 change by less than ``10 * subspace_tol``
-    (relative); or after ``max_iter`` iterations (E-steps; then ``converged`` is False).
+    Stops when the objective (nats per observed value and pseudo-value) changes by less
+    than ``tol`` over one EM iteration (absolute: the data's units shift it by a constant);
+    or when one iteration turns span(W) by less than ``subspace_tol`` radians (largest
+    principal angle) while W's singular values and sigma^2 change by less than ``10 *
+    subspace_tol`` (relative); or when an EM step cannot raise the objective beyond rounding
+    (:meth:`_EMLoop.advance`); or after ``max_iter`` E-steps (then ``converged`` is False).
     ``min_sigma2`` is a floor on sigma^2 relative to the data's mean observed variance
     (keeps noiseless data well posed; at least 1e-6 with float32). ``dtype`` is the
     precision of the large (N x D) matrix products: float64 (default) or float32 (faster,
@@ -565,10 +585,8 @@ def fit_pca_missing(
     if not (math.isfinite(prior_weight) and prior_weight >= 0.0):
         raise LinoLocError(f"prior_weight must be finite and >= 0, got {prior_weight}")
     rng = np.random.default_rng(seed)
-    cols = np.isfinite(a).any(0)  # pixels never observed: no parameters, zeros in the model
     full_d = a.shape[1]
-    if not cols.all():
-        a = a[:, cols]
+    a, cols = _observed_part(a)
     data, mu0, colcount = _centred_data(a, dtype, min_sigma2, px_em)
     W, sigma2 = _start(data, d, prior_weight, rng)
     mu = np.zeros(data.X0.shape[1])
@@ -579,34 +597,91 @@ def fit_pca_missing(
     return model if cols.all() else _expanded(model, cols, full_d)
 
 
+def _observed_part(a: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:
+    """The rows and columns of (N, D) ``a`` with at least one finite value, and the mask
+    (D,) of those columns. Pixels never observed get no parameters (zeros in the model);
+    samples with no valid pixel add nothing to any E- or M-step sum (nor to the prior's
+    weight, which counts samples with data), so dropping them leaves the MAP fit's iterates
+    as they are (the ML fit's start, PCA of the mean-imputed data, no longer counts them)
+    and saves their share of the (N, D) products."""
+    finite = np.isfinite(a)
+    cols, rows = finite.any(0), finite.any(1)
+    if not rows.all():
+        a = a[rows]
+    if not cols.all():
+        a = a[:, cols]
+    return a, cols
+
+
 def _start(data: _EMData, d: int, prior_weight: float, rng: np.random.Generator) -> tuple[F64, float]:
     """Set up the prior (``prior_weight`` > 0) in ``data`` and return the start (W, sigma^2):
-    the prior's mode, or without a prior :func:`_initial_params`."""
+    the prior's mode, or without a prior :func:`_initial_params`. The prior's second moment
+    is S, or where that prior is improper ``S + delta (I - U U^T)`` (U: S's top d
+    eigenvectors, delta from :func:`_proper_shift`): the top d eigenpairs kept, the others
+    raised by delta (for delta below the gap lam_d - lam_{d+1}, U stays on top)."""
     if prior_weight <= 0.0:
         return _initial_params(data, d, rng)
     S = _pairwise_covariance(data)
+    lam, U = _top_eigen(S, d)
+    delta = _proper_shift(float(np.trace(S)), lam, S.shape[0])
+    if delta > 0.0:  # S + delta (I - U U^T): the eigenvalues beyond the d-th raised by delta
+        S[np.diag_indices(S.shape[0])] += delta
+        Ud = U.astype(S.dtype)
+        S -= (delta * Ud) @ Ud.T
+        log.info("EM-PCA: the pairwise covariance gives an improper prior; its eigenvalues beyond "
+                 "the %d-th raised by %.4g", lam.shape[0], delta)
     data.prior = _CovPrior(nu=prior_weight * float(data.active.sum()), S=S, trace=float(np.trace(S)))
-    return _prior_mode(S, d, data.sigma2_floor)
+    return _prior_mode(lam, U, data.prior.trace, S.shape[0], data.sigma2_floor)
 
 
-def _prior_mode(S: F64, d: int, floor: float) -> tuple[F64, float]:
-    """PPCA's closed-form maximum for the second moment S (Tipping & Bishop 1999): the top
-    d eigenpairs (U, lam) of S, ``sigma2`` the mean of the other eigenvalues (at least the
-    floor), ``W = U diag(sqrt(max(lam - sigma2, 1e-3 lam_1)))``. Deterministic (signs fixed
-    by the largest loading)."""
+#: The prior's noise part, the mean of its second moment's eigenvalues beyond the d-th, is at
+#: least this fraction of the mean per-pixel variance tr(S) / D (see :func:`_proper_shift`).
+PRIOR_MIN_NOISE = 1e-3
+
+
+def _proper_shift(trace: float, lam: F64, D: int) -> float:
+    """The ridge delta >= 0 added to S's diagonal so that the prior is proper.
+
+    ``nu log N_S(C)`` is bounded above over ``C = W W^T + sigma^2 I`` only if the mean of S's
+    eigenvalues beyond the d-th, ``r = (tr S - sum_{k<=d} lam_k) / (D - d)``, is positive
+    (its sigma^2 part is ``-nu/2 ((D - d) log sigma^2 + (D - d) r / sigma^2)`` at best). A
+    sample covariance has r >= 0, but an available-case one need not be positive
+    semi-definite: with values missing in blocks its negative eigenvalues can outweigh the
+    small positive ones, r < 0, and the objective then grows without bound as sigma^2 -> 0
+    (EM runs sigma^2 to its floor and W's scale away). Raising the eigenvalues beyond the
+    d-th by ``delta = max(0, PRIOR_MIN_NOISE tr(S) / D - r)`` is the smallest change that
+    makes r at least that fraction of the mean variance; 0 (S unchanged) whenever r already
+    is. ``lam``: S's top d eigenvalues."""
+    d = lam.shape[0]
+    if D <= d:
+        return 0.0
+    rest = (trace - float(lam.sum())) / (D - d)
+    return max(0.0, PRIOR_MIN_NOISE * trace / D - rest)
+
+
+def _top_eigen(S: F64, d: int) -> tuple[F64, F64]:
+    """The top d eigenvalues (d,) and eigenvectors (D, d) of symmetric S, in decreasing
+    order (dense for small S, Lanczos with a fixed start vector otherwise)."""
     D = S.shape[0]
     if D <= 600 or d >= D - 1:
         lam, U = np.linalg.eigh(np.asarray(S, dtype=np.float64))
-        lam, U = lam[::-1][:d], U[:, ::-1][:, :d]
-    else:
-        from scipy.sparse.linalg import eigsh
+        return lam[::-1][:d], U[:, ::-1][:, :d]
+    from scipy.sparse.linalg import eigsh
 
-        v0 = np.ones(D) / math.sqrt(D)
-        lam, U = eigsh(S, k=d, which="LA", v0=v0.astype(S.dtype), tol=1e-6)
-        order = np.argsort(lam)[::-1]
-        lam, U = lam[order].astype(np.float64), U[:, order].astype(np.float64)
-    sigma2 = max((float(np.trace(S)) - float(lam.sum())) / max(D - d, 1), floor)
-    U *= np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(d)])[None, :]
+    v0 = np.ones(D) / math.sqrt(D)
+    lam, U = eigsh(S, k=d, which="LA", v0=v0.astype(S.dtype), tol=1e-6)
+    order = np.argsort(lam)[::-1]
+    return lam[order].astype(np.float64), U[:, order].astype(np.float64)
+
+
+def _prior_mode(lam: F64, U: F64, trace: float, D: int, floor: float) -> tuple[F64, float]:
+    """PPCA's closed-form maximum for a second moment S (Tipping & Bishop 1999) from its top
+    d eigenpairs (lam, U) and trace: ``sigma2`` the mean of the other eigenvalues (at least
+    the floor), ``W = U diag(sqrt(max(lam - sigma2, 1e-3 lam_1)))``. Deterministic (signs
+    fixed by the largest loading)."""
+    d = lam.shape[0]
+    sigma2 = max((trace - float(lam.sum())) / max(D - d, 1), floor)
+    U = U * np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(d)])[None, :]
     return U * np.sqrt(np.maximum(lam - sigma2, 1e-3 * max(float(lam[0]), floor)))[None, :], sigma2
 
 
@@ -794,6 +869,7 @@ class _EMLoop:
         self.it = 0
         self.last: _Params | None = None  # the iterate whose objective is history[-1]
         self.fallbacks = 0
+        self.plain_image = False  # the next advance starts from a plain EM image of last
 
     def step(self, p: _Params, px: bool = True) -> tuple[_Params, float]:
         """One EM step from p: the next parameters and the objective at p."""
@@ -813,12 +889,20 @@ class _EMLoop:
         Monotonicity safeguard: the parameter-expanded step is exact EM only without the
         prior; if p (the image of such a step) has a lower objective than the last recorded
         iterate, p is dropped and a plain EM step (whose image never lowers the objective)
-        is taken from that iterate instead; nothing is recorded then."""
+        is taken from that iterate instead; nothing is recorded then. If that plain EM
+        image is lower too, which only rounding can make it (float32 products near the
+        optimum), the objective cannot be raised measurably: the rule holds, and the last
+        recorded iterate is returned."""
         p_next, ll = self.step(p)
         prev = self.history[-1] if self.history else None
+        plain_image, self.plain_image = self.plain_image, False
         if prev is not None and self.last is not None and ll < prev - 1e-12 * abs(prev):
+            if plain_image:
+                log.debug("EM-PCA iter %d: an EM step lowers the objective by rounding alone: converged", self.it)
+                return self.last, prev, True
             self.fallbacks += 1
             p_next, _ = self.step(self.last, px=False)
+            self.plain_image = True
             return p_next, prev, False
         stop = self.done(p, p_next, ll, prev)
         self.record(p, ll)
@@ -842,10 +926,9 @@ class _EMLoop:
         )
         if ll_prev is None:
             return False
-        rel = abs(ll - ll_prev) / max(abs(ll_prev), 1e-12)
         tol = self.subspace_tol
         settled = dangle < tol and max(dscale, s2_change) < 10 * tol
-        return rel < self.tol or settled
+        return abs(ll - ll_prev) < self.tol or settled
 
 
 def _run_em(

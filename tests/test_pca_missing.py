@@ -323,3 +323,117 @@ def test_a_posterior_matrix_made_indefinite_by_rounding_is_restored_to_its_exact
     np.testing.assert_array_equal(out[[0, 2]], bad[[0, 2]])
     assert np.linalg.eigvalsh(out[1])[0] == pytest.approx(0.5)
     np.linalg.cholesky(out)  # positive definite
+
+
+def _few_directions_block_missing(seed: int, n: int = 200, blocks: int = 20, side: int = 20, k: int = 10) -> np.ndarray:
+    """Each sample observes 3 of ``blocks`` blocks (85 % missing) of data with k directions
+    and little noise: the available-case covariance is far from positive semi-definite and
+    the mean of its eigenvalues beyond the 8th is negative (an improper prior, as with the
+    corridor's sparse disparity)."""
+    rng = np.random.default_rng(seed)
+    dim = blocks * side
+    basis = np.linalg.qr(rng.normal(size=(dim, k)))[0] * np.sqrt(np.linspace(3.0, 1.0, k)) * np.sqrt(dim) / 4
+    x = rng.normal(size=(n, k)) @ basis.T + rng.normal(0.0, 0.05, (n, dim)) + 5.0
+    for i in range(n):
+        off = np.ones(blocks, dtype=bool)
+        off[rng.choice(blocks, 3, replace=False)] = False
+        x[i, np.repeat(off, side)] = np.nan
+    return x
+
+
+def test_an_improper_prior_is_made_proper_and_the_fit_converges():
+    """Where the available-case covariance S gives an improper prior (the mean of its
+    eigenvalues beyond the d-th is negative), S's diagonal is raised by the smallest ridge
+    that makes it proper (the eigenvalues beyond the d-th raised): sigma^2 stays far above its floor (it ran to the floor before), the fit converges well inside the limit, the objective never drops and
+    a second seed gives the same subspace. Data whose S is proper are left as they are."""
+    from lino_loc import pca_missing as pm
+
+    x = _few_directions_block_missing(0)
+    a, _ = pm._checked_data(x, 8, np.float64)
+    data, _, _ = pm._centred_data(a, np.float64, 1e-9, True)
+    S = pm._pairwise_covariance(data)
+    lam, _ = pm._top_eigen(S, 8)
+    trace, D = float(np.trace(S)), S.shape[0]
+    assert (trace - lam.sum()) / (D - 8) < 0  # improper as it is
+    delta = pm._proper_shift(trace, lam, D)
+    assert (trace + (D - 8) * delta - lam.sum()) / (D - 8) == pytest.approx(pm.PRIOR_MIN_NOISE * trace / D)
+    model = fit_pca_missing(x, 8, seed=0, max_iter=100)
+    assert model.converged and model.n_iter <= 80
+    assert model.sigma2 > 1e3 * data.sigma2_floor  # before: at the floor, not converged in 100
+    ll = np.array(model.log_likelihood)
+    assert np.all(np.diff(ll) >= -1e-12 * np.abs(ll[1:]))
+    other = fit_pca_missing(x, 8, seed=5, max_iter=100)
+    assert _max_angle_deg(model.components, other.components) < 1e-6
+    # a proper S (the test problem without a spectral gap) is not touched
+    a, _ = pm._checked_data(_blocks_no_gap(0), 8, np.float64)
+    data, _, _ = pm._centred_data(a, np.float64, 1e-9, True)
+    S = pm._pairwise_covariance(data)
+    lam, _ = pm._top_eigen(S, 8)
+    assert pm._proper_shift(float(np.trace(S)), lam, S.shape[0]) == 0.0
+
+
+def test_float32_fit_stops_at_its_rounding_resolution_near_the_exact_answer():
+    """With no tolerance at all, the float32 fit stops (converged) once an EM step can no
+    longer raise its objective beyond rounding, well before the iteration limit, and its
+    subspace is that of the float64 fit run to a tight tolerance."""
+    rng = np.random.default_rng(13)
+    x = _block_missing(rng, 300, 16, 5)
+    exact = fit_pca_missing(x, 5, tol=1e-13, subspace_tol=1e-9, max_iter=3000)
+    assert exact.converged
+    fast = fit_pca_missing(x, 5, tol=0.0, subspace_tol=0.0, max_iter=3000, dtype=np.float32)
+    assert fast.converged and fast.n_iter < 3000
+    assert _max_angle_deg(fast.components, exact.components) < 0.05
+
+
+def test_the_objective_tolerance_is_absolute_per_value():
+    """The stopping rule's objective test is on its change in nats per value: invariant to
+    the data's units (a scale shifts the objective by a constant), so a fit of 10 x the data
+    stops at the same iteration with nearly the same subspace (SQUAREM's step length mixes
+    W's and sigma^2's units, so the iterates are not exactly scale-equivariant)."""
+    x = _blocks_no_gap(2, n=400, blocks=12, keep=3)
+    a = fit_pca_missing(x, 8, seed=0, max_iter=200)
+    b = fit_pca_missing(10.0 * x, 8, seed=0, max_iter=200)
+    assert a.converged and b.converged
+    assert a.n_iter == b.n_iter
+    assert _max_angle_deg(a.components, b.components) < 0.1
+
+
+def test_samples_without_a_valid_pixel_change_nothing():
+    """Rows with no valid value add nothing to the MAP fit (they are dropped before it):
+    the same model with or without them, and their features are the prior mean."""
+    x = _blocks_no_gap(3, n=300, blocks=12, keep=3)
+    padded = np.vstack([x[:100], np.full((40, x.shape[1]), np.nan), x[100:]])
+    a = fit_pca_missing(x, 8, seed=0)
+    b = fit_pca_missing(padded, 8, seed=0)
+    assert a.n_iter == b.n_iter and a.converged and b.converged
+    assert np.allclose(a.components, b.components, atol=1e-9)
+    assert a.sigma2 == pytest.approx(b.sigma2, rel=1e-12)
+    y, has = b.project(padded, return_valid=True)
+    assert not has[100:140].any() and np.all(y[100:140] == 0.0)
+
+
+def test_the_batched_posterior_is_the_per_sample_one():
+    """The E-step's batched products and inverses give, sample by sample, the posterior of
+    the observed pixels alone: M_n = W_o^T W_o + sigma^2 I, E[z] = M_n^-1 W_o^T (x_o - mu_o),
+    and log N(x_o | mu_o, W_o W_o^T + sigma^2 I)."""
+    from scipy.stats import multivariate_normal
+
+    from lino_loc.pca_missing import _posterior
+
+    rng = np.random.default_rng(14)
+    n, D, d = 12, 30, 4
+    W, mu, s2 = rng.normal(size=(D, d)), rng.normal(size=D), 0.7
+    x = rng.normal(size=(n, D)) * 2.0
+    x[rng.random(x.shape) < 0.5] = np.nan
+    x[3] = np.nan
+    mask = np.isfinite(x)
+    X0 = np.where(mask, x, 0.0)
+    Ez, Minv, ll = _posterior(W, mu, s2, X0, mask.astype(float), mask.sum(1).astype(float),
+                              np.einsum("nj,nj->n", X0, X0))
+    for i in range(n):
+        o = mask[i]
+        M = W[o].T @ W[o] + s2 * np.eye(d)
+        assert np.allclose(Minv[i], np.linalg.inv(M), atol=1e-12)
+        assert np.allclose(Ez[i], np.linalg.solve(M, W[o].T @ (x[i, o] - mu[o])), atol=1e-12)
+        want = 0.0 if not o.any() else multivariate_normal(mu[o], W[o] @ W[o].T + s2 * np.eye(o.sum())).logpdf(x[i, o])
+        assert ll[i] == pytest.approx(want, rel=1e-10, abs=1e-10)
