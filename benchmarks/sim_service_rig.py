@@ -234,6 +234,22 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def relay_pid(daemon: int) -> int | None:
+    """The pose relay among the daemon's children (None: none running)."""
+    for task in Path(f"/proc/{daemon}/task").glob("*/children"):
+        try:
+            children = task.read_text().split()
+        except OSError:
+            continue
+        for c in children:
+            try:
+                if b"services.pose_relay" in Path(f"/proc/{c}/cmdline").read_bytes():
+                    return int(c)
+            except OSError:
+                continue
+    return None
+
+
 def cpu_seconds(pid: int) -> float:
     """utime + stime of ``pid`` in s (/proc/PID/stat)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()

@@ -8,7 +8,9 @@ collects the poses and the simulator's true pose. It prints a table and, with ``
 JSON object:
 
 - ``rss_slope_mb_per_min``: least-squares slope of VmRSS against time over the samples;
-  ``rss_mb`` first / last / max;
+  ``rss_mb`` first / last / max; ``relay_rss_slope_mb_per_min`` and ``relay_rss_mb`` the same
+  for the pose relay (``services/pose_relay.py``, the daemon's child that owns the pose port;
+  null without one), and ``relay_pids`` the relay processes seen (more than one: it restarted);
 - ``cpu_share``: daemon CPU seconds / wall seconds over the window (1.0 = one core);
 - ``pose_rate_hz``: poses per second over the window, and min / max over one-minute bins;
 - ``error_m``: position error (estimate vs truth at the pose's stamp) median / p95, and
@@ -42,7 +44,7 @@ import numpy as np
 import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sim_service_rig import Rig, Settings, Stream, cpu_seconds, exit_on_sigterm, rss_mb  # noqa: E402
+from sim_service_rig import Rig, Settings, Stream, cpu_seconds, exit_on_sigterm, relay_pid, rss_mb  # noqa: E402
 
 #: At most this many churning subscribers on the pose port at once.
 CHURN_SUBSCRIBERS = 20
@@ -115,16 +117,31 @@ def sample(rig: Rig, stream: Stream, args: argparse.Namespace) -> dict[str, Any]
     assert rig.daemon is not None
     pid = rig.daemon.pid
     t_start = time.time()
-    samples: list[tuple[float, float, float]] = []  # (t, rss, cpu)
+    samples: list[tuple[float, float, float, float]] = []  # (t, rss, cpu, relay rss)
+    relays: set[int] = set()
     end = t_start + args.minutes * 60.0
-    while time.time() < end:
+    while True:
         if rig.daemon.poll() is not None:
             raise SystemExit(f"the daemon exited ({rig.daemon.returncode}): {rig.daemon_log.read_text()[-2000:]}")
-        samples.append((time.time(), rss_mb(pid), cpu_seconds(pid)))
+        samples.append((time.time(), rss_mb(pid), cpu_seconds(pid), _relay_rss(pid, relays)))
+        if time.time() >= end:
+            break
         time.sleep(min(args.sample_s, max(0.0, end - time.time())))
-    samples.append((time.time(), rss_mb(pid), cpu_seconds(pid)))
-    t_end = time.time()
-    return summarize(stream, np.array(samples), t_start, t_end)
+    out = summarize(stream, np.array(samples), t_start, time.time())
+    out["relay_pids"] = len(relays)
+    return out
+
+
+def _relay_rss(daemon: int, seen: set[int]) -> float:
+    """The relay's VmRSS in MB (nan: no relay running), its pid added to ``seen``."""
+    relay = relay_pid(daemon)
+    if relay is None:
+        return float("nan")
+    seen.add(relay)
+    try:
+        return rss_mb(relay)
+    except OSError:
+        return float("nan")
 
 
 def summarize(stream: Stream, s: np.ndarray, t0: float, t1: float) -> dict[str, Any]:
@@ -149,6 +166,10 @@ def summarize(stream: Stream, s: np.ndarray, t0: float, t1: float) -> dict[str, 
         "rss_mb": {"first": round(float(s[0, 1]), 1), "last": round(float(s[-1, 1]), 1),
                    "max": round(float(s[:, 1].max()), 1)},
         "rss_slope_mb_per_min": _r(slope_per_min(s[:, 0] - t0, s[:, 1]), 4),
+        "relay_rss_mb": None if not np.isfinite(s[:, 3]).any() else {
+            "first": _r(float(s[np.isfinite(s[:, 3])][0, 3]), 1),
+            "last": _r(float(s[np.isfinite(s[:, 3])][-1, 3]), 1), "max": _r(float(np.nanmax(s[:, 3])), 1)},
+        "relay_rss_slope_mb_per_min": _r(slope_per_min(s[:, 0] - t0, s[:, 3]), 4),
         "cpu_share": round(float((s[-1, 2] - s[0, 2]) / (s[-1, 0] - s[0, 0])), 3),
         "pose_rate_hz": {"mean": round(len(poses) / (t1 - t0), 2),
                          "min_1min": _r(min(rates), 2) if rates else None,
@@ -200,6 +221,9 @@ def table(o: dict[str, Any]) -> str:
         ("window", f"{o['window_s']} s, {o['samples']} samples"),
         ("resident memory slope", f"{o['rss_slope_mb_per_min']} MB/min"),
         ("resident memory first / last / max", f"{o['rss_mb']['first']} / {o['rss_mb']['last']} / {o['rss_mb']['max']} MB"),
+        ("relay memory slope, first / last / max (relay processes)",
+         "-" if o["relay_rss_mb"] is None else f"{o['relay_rss_slope_mb_per_min']} MB/min, {o['relay_rss_mb']['first']} / "
+         f"{o['relay_rss_mb']['last']} / {o['relay_rss_mb']['max']} MB ({o['relay_pids']})"),
         ("CPU share", f"{o['cpu_share']} core"),
         ("pose rate mean (1-min min / max)",
          f"{o['pose_rate_hz']['mean']} Hz ({o['pose_rate_hz']['min_1min']} / {o['pose_rate_hz']['max_1min']})"),

@@ -56,6 +56,7 @@ import zmq
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_service import ROOT, _Collector, _config, _free_port, _mem_mb  # noqa: E402
+from sim_service_rig import relay_pid  # noqa: E402
 
 sys.path.insert(0, str(ROOT))
 from services.control import CONTROL_MAX_FRAME_BYTES  # noqa: E402
@@ -159,22 +160,6 @@ def subscribe_storm(ctx: zmq.Context[Any], endpoint: str, rng: np.random.Generat
         s.setsockopt(zmq.UNSUBSCRIBE, t)
     s.setsockopt(zmq.SUBSCRIBE, b"pose")
     subs.append(s)
-
-
-def relay_pid(daemon: int) -> int | None:
-    """The pose relay among the daemon's children (None: none running)."""
-    for task in Path(f"/proc/{daemon}/task").glob("*/children"):
-        try:
-            children = task.read_text().split()
-        except OSError:
-            continue
-        for c in children:
-            try:
-                if b"services.pose_relay" in Path(f"/proc/{c}/cmdline").read_bytes():
-                    return int(c)
-            except OSError:
-                continue
-    return None
 
 
 class MemorySampler(threading.Thread):
