@@ -85,6 +85,18 @@ CONFIRMED_SUPPORT = 0.3
 #: geometry's): an appearance change (``lino_loc.appearance_change``) leaves their rates alone
 LIGHT_INVARIANT = frozenset({"disparity"})
 
+#: channels whose mixtures overlap less than this (``lino_loc.channel_agreement.overlap``; two
+#: single kernels of width s about 3 s apart, 1 m at the sensor model's 0.35 m) place the
+#: camera at different places
+MIN_OVERLAP = 0.1
+
+#: forgetting factor of the share of views whose channels disagree, per independent view
+#: (about 10 views' memory: channels that KEEP pointing at different places)
+DISAGREE_MEMORY = 0.9
+
+#: the name of the channel of all channels' views together (``ViewFitConfig.joint``)
+JOINT = "joint"
+
 Verdict = Literal["confirmed", "uninformative", "misfit"]
 
 
@@ -104,6 +116,20 @@ class ViewFitConfig(BaseModel):
     min_fit: float = Field(
         0.7, ge=0.0, le=1.0, description="an informative channel whose recent hit share falls "
         "below this share of its learnt hit rate no longer fits the belief: 'lost'",
+    )
+    joint: bool = Field(
+        False, description="with two or more channels, their views together count as one more "
+        "channel, 'joint': a hit when some channel's view fits the belief",
+    )
+    split: Literal["misfit", "uninformative"] = Field(
+        "misfit", description="an informative channel that stops fitting while another "
+        "informative one fits (the channels disagree about the belief): 'misfit' ('lost') or "
+        "'uninformative' (not confirmed: 'global')",
+    )
+    max_disagreement: float = Field(
+        1.0, ge=0.0, le=1.0, description="a belief is not confirmed ('global') while more than "
+        "this share of the recent views had channels placing the camera at different places "
+        "(lino_loc.channel_agreement overlap below MIN_OVERLAP); 1: off",
     )
 
 
@@ -126,12 +152,14 @@ class ViewFit:
     channels: dict[str, _ChannelFit] = field(default_factory=dict, init=False)
     _learnt: float = field(default=0.0, init=False)  # views learnt since reset, no forgetting
     _trusted: bool = field(default=False, init=False)
+    disagreement: float = field(default=0.0, init=False)  # recent share of disagreeing views
 
     def reset(self) -> None:
         """Forget everything (a new start)."""
         self.channels.clear()
         self._learnt = 0.0
         self._trusted = False
+        self.disagreement = 0.0
 
     def trust(self) -> None:
         """The belief was given by the user: confirmed until WARMUP_VIEWS views are learnt."""
@@ -141,6 +169,7 @@ class ViewFit:
         """A new belief: its recent fit starts again (at 1); the rates stay."""
         for ch in self.channels.values():
             ch.fit = 1.0
+        self.disagreement = 0.0
 
     def appearance_changed(self) -> None:
         """The appearance changed (lights switched): the learnt rates and the recent fit of
@@ -152,16 +181,26 @@ class ViewFit:
                 ch.hits = ch.views = 0.0
                 ch.fit = 1.0
 
-    def update(self, excess: Mapping[str, float], views: float, learn: bool = True) -> None:
+    def update(
+        self, excess: Mapping[str, float], views: float, learn: bool = True,
+        overlap: float = math.nan,
+    ) -> None:
         """One observation: per channel the predictive log-likelihood minus that channel's
         outlier floor (nats; nan: the channel saw nothing this frame), ``views`` in [0, 1] its
-        share of an independent view, ``learn``: the belief is trusted."""
+        share of an independent view, ``learn``: the belief is trusted, ``overlap`` the
+        channels' overlap (``lino_loc.channel_agreement``; nan: unknown, one channel)."""
         v = min(max(float(views), 0.0), 1.0)
         if v <= 0.0:
             return
         a = FIT_MEMORY**v
         if learn:
             self._learnt += v
+        if math.isfinite(overlap):
+            ad = DISAGREE_MEMORY**v
+            self.disagreement = ad * self.disagreement + (1.0 - ad) * float(overlap < MIN_OVERLAP)
+        seen = [x for x in excess.values() if not math.isnan(x)]
+        if self.config.joint and len(seen) > 1:
+            excess = {**excess, JOINT: max(seen)}
         for name, x in excess.items():
             if math.isnan(x):
                 continue
@@ -184,8 +223,12 @@ class ViewFit:
         if not informative:
             warm = self._trusted and self._learnt < WARMUP_VIEWS
             return "confirmed" if warm else "uninformative"
-        misfit = any(ch.fit < self.config.min_fit * ch.rho for ch in informative)
-        return "misfit" if misfit else "confirmed"
+        c = self.config
+        misfits = sum(ch.fit < c.min_fit * ch.rho for ch in informative)
+        if misfits:
+            split = misfits < len(informative)
+            return "uninformative" if split and c.split == "uninformative" else "misfit"
+        return "uninformative" if self.disagreement > c.max_disagreement else "confirmed"
 
     def support(self) -> float:
         """The views' support of the belief in [0, 1] (see the module docstring); 0 before
@@ -194,11 +237,12 @@ class ViewFit:
             return 0.0
         r = self.config.informative_hit_rate
         informative = self._informative()
-        if not informative:
+        verdict = self.verdict()
+        if verdict == "misfit":
+            return 0.0
+        if not informative or verdict == "uninformative":
             b = CONFIRMED_SUPPORT
             return max(b * ch.fit * min(1.0, ch.rho / max(r, 1e-9)) for ch in self.channels.values())
-        if any(ch.fit < self.config.min_fit * ch.rho for ch in informative):
-            return 0.0
         span = max(1.0 - r, 1e-9)
         b = CONFIRMED_SUPPORT
         return min(b + (1.0 - b) * ch.fit * min(max((ch.rho - r) / span, 0.0), 1.0) for ch in informative)
