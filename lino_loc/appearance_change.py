@@ -96,7 +96,7 @@ class AppearanceChangeConfig(BaseModel):
         "taking the worse views for a kidnapping",
     )
     per_channel: bool = Field(
-        True, description="with a light-invariant channel (disparity) in the view, a rise of "
+        False, description="with a light-invariant channel (disparity) in the view, a rise of "
         "the intensity channel's novelty is a light change only while the disparity channel's "
         "stays steady; when both rise the place is unlike the map (no relearning)",
     )

@@ -510,9 +510,12 @@ class AuxiliaryParticleFilter:
 
     def _channel_overlap(self, mixture: PoseMixture) -> float:
         """The overlap of the view's two channel mixtures (``lino_loc.channel_agreement``)
-        when ``view_fit.max_disagreement`` asks for it; nan otherwise."""
+        when ``view_fit.max_disagreement`` or ``view_fit.joint = "agreeing"`` asks for it;
+        nan otherwise."""
         channels = mixture.channels
-        if self.config.view_fit.max_disagreement >= 1.0 or not channels or len(channels) != 2:
+        vf = self.config.view_fit
+        wanted = vf.max_disagreement < 1.0 or vf.joint == "agreeing"
+        if not wanted or not channels or len(channels) != 2:
             return math.nan
         a, b = channels.values()
         return overlap(a, b)

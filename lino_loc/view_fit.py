@@ -40,6 +40,23 @@ A channel is INFORMATIVE when rho_c >= ``informative_hit_rate``. The verdict
 The filter reports ``tracking`` only for a confirmed verdict, ``lost`` for a misfit and
 ``global`` (converged, not confirmed) for uninformative views (``lino_loc.particle_filter``).
 
+Channels together (each off by default, :class:`ViewFitConfig`):
+
+- ``joint``: with two or more channels in a view, one more channel, :data:`JOINT`, whose
+  excess is the largest of the channels' (a hit when SOME channel's view fits the belief),
+  learnt and judged like the others; its rho is at least every channel's. Two channels that
+  each fit about half the views, not the same half, confirm a pose neither confirms alone,
+  and all channels pointing away from the belief is its misfit;
+- ``split = "uninformative"``: informative channels that disagree about the belief (some
+  misfit, some fit) leave it unconfirmed (``global``) instead of ``lost``; all informative
+  channels misfitting is still ``misfit``;
+- ``max_disagreement`` < 1: per view the channels' overlap o_t
+  (``lino_loc.channel_agreement.overlap``, belief-independent) gives the recent share of
+  views whose channels place the camera at different places,
+  ``g <- m g + (1 - m) [o_t < MIN_OVERLAP]``, ``m = DISAGREE_MEMORY ** v_t``, from 0 for a
+  new belief; a belief that would be confirmed is ``uninformative`` while g >
+  ``max_disagreement``. Views without an overlap (one channel) leave g alone.
+
 :meth:`ViewFit.support` is the views' share of the estimate's ``quality``, in [0, 1], with R =
 ``informative_hit_rate``:
 
@@ -117,9 +134,10 @@ class ViewFitConfig(BaseModel):
         0.7, ge=0.0, le=1.0, description="an informative channel whose recent hit share falls "
         "below this share of its learnt hit rate no longer fits the belief: 'lost'",
     )
-    joint: bool = Field(
-        False, description="with two or more channels, their views together count as one more "
-        "channel, 'joint': a hit when some channel's view fits the belief",
+    joint: Literal["off", "any", "agreeing"] = Field(
+        "off", description="with two or more channels, their views together count as one more "
+        "channel, 'joint': a hit when some channel's view fits the belief ('any'), and, "
+        "'agreeing', only when the channels do not point at different places (or all fit)",
     )
     split: Literal["misfit", "uninformative"] = Field(
         "misfit", description="an informative channel that stops fitting while another "
@@ -199,8 +217,8 @@ class ViewFit:
             ad = DISAGREE_MEMORY**v
             self.disagreement = ad * self.disagreement + (1.0 - ad) * float(overlap < MIN_OVERLAP)
         seen = [x for x in excess.values() if not math.isnan(x)]
-        if self.config.joint and len(seen) > 1:
-            excess = {**excess, JOINT: max(seen)}
+        if self.config.joint != "off" and len(seen) > 1:
+            excess = {**excess, JOINT: self._joint_excess(seen, overlap)}
         for name, x in excess.items():
             if math.isnan(x):
                 continue
@@ -212,6 +230,15 @@ class ViewFit:
                 m = (MEMORY_SUSPECT if suspect else MEMORY) ** v
                 ch.hits = m * ch.hits + v * hit
                 ch.views = m * ch.views + v
+
+    def _joint_excess(self, seen: list[float], overlap: float) -> float:
+        """The joint channel's excess: the largest channel's; with ``joint = "agreeing"`` the
+        smallest when the channels point at different places (overlap below MIN_OVERLAP)
+        unless every channel hits."""
+        apart = math.isfinite(overlap) and overlap < MIN_OVERLAP
+        if self.config.joint == "agreeing" and apart and min(seen) <= HIT_NATS:
+            return min(seen)
+        return max(seen)
 
     def _informative(self) -> list[_ChannelFit]:
         r = self.config.informative_hit_rate

@@ -138,7 +138,7 @@ def test_quality_factors() -> None:
 def test_two_half_reliable_channels_confirm_together() -> None:
     """Each channel hits every other view, on alternate views (rho about 1/2 each: neither
     can confirm), so some channel hits every view: the joint channel's rho is near 1."""
-    alone, joint = ViewFit(), ViewFit(ViewFitConfig(joint=True))
+    alone, joint = ViewFit(), ViewFit(ViewFitConfig(joint="any"))
     for fit in (alone, joint):
         _teach(fit, {"intensity": [HIT, MISS], "disparity": [MISS, HIT]}, 30)
     assert alone.verdict() == "uninformative"
@@ -151,13 +151,13 @@ def test_two_half_reliable_channels_confirm_together() -> None:
 def test_joint_is_the_best_channel_and_needs_two_channels() -> None:
     """The joint channel's rate is at least each channel's; with one channel there is none."""
     rng = np.random.default_rng(4)
-    fit = ViewFit(ViewFitConfig(joint=True))
+    fit = ViewFit(ViewFitConfig(joint="any"))
     for _ in range(300):
         h = rng.random(2) < (0.6, 0.3)
         fit.update({"intensity": HIT if h[0] else MISS, "disparity": HIT if h[1] else MISS}, 1.0)
     r = fit.hit_rates()
     assert r["joint"] >= max(r["intensity"], r["disparity"]) - 1e-12
-    single = ViewFit(ViewFitConfig(joint=True))
+    single = ViewFit(ViewFitConfig(joint="any"))
     _teach(single, {"intensity": [HIT]}, 10)
     assert "joint" not in single.hit_rates()
 
