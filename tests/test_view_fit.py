@@ -207,3 +207,32 @@ def test_channels_that_keep_pointing_at_different_places_leave_the_belief_unconf
     for _ in range(50):
         off.update({"intensity": HIT}, 1.0, overlap=0.0)
     assert off.verdict() == "confirmed"  # max_disagreement = 1: off
+
+
+def test_with_joint_a_disparity_channel_once_informative_stays_heard() -> None:
+    """A wrong belief: disparity stops fitting while intensity hits now and then. Its learnt
+    rate falls below the informative rate, yet it stays heard (misfit) until HEARD_HIT_RATE;
+    a channel kept heard never confirms; an intensity channel is not kept."""
+    from lino_loc.view_fit import HEARD_HIT_RATE
+
+    fit = ViewFit(ViewFitConfig(joint="any"))
+    _teach(fit, {"intensity": [HIT, MISS, MISS, MISS], "disparity": [HIT, HIT, HIT, MISS]}, 10)
+    assert fit.verdict() == "confirmed"
+    seen = []
+    for k in range(40):
+        fit.update({"intensity": HIT if k % 2 else MISS, "disparity": MISS}, 1.0)
+        seen.append((fit.hit_rates()["disparity"], fit.verdict()))
+    below = [v for r, v in seen if HEARD_HIT_RATE <= r < 0.55]
+    assert below and all(v == "misfit" for v in below)
+    assert not fit.channels["intensity"].heard
+    off = ViewFit(ViewFitConfig(joint="off"))  # without joint: unheard below the informative rate
+    _teach(off, {"intensity": [HIT, MISS, MISS, MISS], "disparity": [HIT, HIT, HIT, MISS]}, 10)
+    for k in range(40):
+        off.update({"intensity": HIT if k % 2 else MISS, "disparity": MISS}, 1.0)
+    assert not off.channels["disparity"].heard
+    alone = ViewFit(ViewFitConfig(joint="any"))
+    _teach(alone, {"disparity": [HIT, HIT, HIT, MISS]}, 10)
+    ch = alone.channels["disparity"]
+    ch.hits = 0.45 * (ch.views + 1.0) - 0.5  # rate now between HEARD_HIT_RATE and informative
+    alone.update({"disparity": HIT}, 1.0)
+    assert ch.heard and HEARD_HIT_RATE < ch.rho < 0.55 and alone.verdict() == "uninformative"
