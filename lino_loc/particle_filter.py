@@ -70,6 +70,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from lino_loc.apf import StepResult, apf_step
 from lino_loc.appearance_change import AppearanceChangeConfig, AppearanceChangeDetector
+from lino_loc.channel_agreement import overlap
 from lino_loc.errors import LinoLocError
 from lino_loc.kidnap_recovery import KidnapRecovery, RecoveryConfig, Verdict, outlier_floor
 from lino_loc.lost_detection import (
@@ -436,7 +437,7 @@ class AuxiliaryParticleFilter:
             return self.global_seed(d, pan, mixture)
         self._uniform_prior = False
         loglik, ll = self._predict_and_weight(d, pan, mixture)
-        self._watch_appearance(mixture.novelty, d)
+        self._watch_appearance(mixture, d)
         floor = outlier_floor(mixture)
         self._test_lost(ll, floor, viewed_increment(d, pan_change), mixture, pan)
         self._recover(ll, floor, d, loglik, mixture, pan)
@@ -467,12 +468,18 @@ class AuxiliaryParticleFilter:
         self.last_log_likelihood = res.log_likelihood
         return loglik, res.log_likelihood
 
-    def _watch_appearance(self, novelty: float, d: FloatArray) -> None:
+    def _watch_appearance(self, mixture: PoseMixture, d: FloatArray) -> None:
         """Step 2: when the views became less familiar all at once (lino_loc.appearance_change)
         the light, not the pose, changed. What the self-checks learnt under the old appearance
         no longer holds: kidnap recovery restarts its likelihood averages and drops a candidate
         set it was testing, the lost test forgets its learnt hit rate and its evidence. The
-        belief itself is left alone."""
+        belief itself is left alone. With ``appearance_change.per_channel`` and the view's
+        channels known, each channel's novelty is watched (a rise of intensity and disparity
+        together is the place, not the light: no relearning)."""
+        channels = mixture.channels
+        novelty: float | dict[str, float] = mixture.novelty
+        if self.config.appearance_change.per_channel and channels and len(channels) > 1:
+            novelty = {name: m.novelty for name, m in channels.items()}
         if self.appearance_watch is not None and self.appearance_watch.update(
             novelty, independent_views(d)
         ):
@@ -499,7 +506,20 @@ class AuxiliaryParticleFilter:
                 self._recall_run = 0.0
         learn = self._state != "global"
         self.lost_detector.update(excess, d, learn=learn)
-        self.view_fit.update(self._channel_excess(mixture, excess, pan), independent_views(d), learn)
+        self.view_fit.update(self._channel_excess(mixture, excess, pan), independent_views(d), learn,
+                             self._channel_overlap(mixture))
+
+    def _channel_overlap(self, mixture: PoseMixture) -> float:
+        """The overlap of the view's two channel mixtures (``lino_loc.channel_agreement``)
+        when ``view_fit.max_disagreement`` or ``view_fit.joint = "agreeing"`` asks for it;
+        nan otherwise."""
+        channels = mixture.channels
+        vf = self.config.view_fit
+        wanted = vf.max_disagreement < 1.0 or vf.joint == "agreeing"
+        if not wanted or not channels or len(channels) != 2:
+            return math.nan
+        a, b = channels.values()
+        return overlap(a, b)
 
     def _channel_excess(self, mixture: PoseMixture, excess: float, pan: float) -> dict[str, float]:
         """Per channel of the observation (``PoseMixture.channels``), the channel's

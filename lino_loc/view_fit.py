@@ -40,6 +40,30 @@ A channel is INFORMATIVE when rho_c >= ``informative_hit_rate``. The verdict
 The filter reports ``tracking`` only for a confirmed verdict, ``lost`` for a misfit and
 ``global`` (converged, not confirmed) for uninformative views (``lino_loc.particle_filter``).
 
+Channels together (each off by default, :class:`ViewFitConfig`):
+
+- ``joint``: with two or more channels in a view, one more channel, :data:`JOINT`, whose
+  excess is the largest of the channels' (a hit when SOME channel's view fits the belief),
+  learnt and judged like the others; its rho is at least every channel's. Two channels that
+  each fit about half the views, not the same half, confirm a pose neither confirms alone,
+  and all channels pointing away from the belief is its misfit. With ``joint = "any"`` a
+  light-invariant channel, once informative, stays informative until its rho falls below
+  :data:`HEARD_HIT_RATE` (hysteresis): a wrong belief teaches its channels low rates, and
+  without it the joint channel, fed by the light-variant channel's chance hits under another
+  light, would confirm the wrong belief the disparity channel no longer fits. A channel kept
+  heard only below the informative rate can make a misfit, never a confirmation. ``"agreeing"``
+  takes the smallest channel excess instead of the largest while the channels point at
+  different places (overlap below :data:`MIN_OVERLAP`, below) unless all fit;
+- ``split = "uninformative"``: informative channels that disagree about the belief (some
+  misfit, some fit) leave it unconfirmed (``global``) instead of ``lost``; all informative
+  channels misfitting is still ``misfit``;
+- ``max_disagreement`` < 1: per view the channels' overlap o_t
+  (``lino_loc.channel_agreement.overlap``, belief-independent) gives the recent share of
+  views whose channels place the camera at different places,
+  ``g <- m g + (1 - m) [o_t < MIN_OVERLAP]``, ``m = DISAGREE_MEMORY ** v_t``, from 0 for a
+  new belief; a belief that would be confirmed is ``uninformative`` while g >
+  ``max_disagreement``. Views without an overlap (one channel) leave g alone.
+
 :meth:`ViewFit.support` is the views' share of the estimate's ``quality``, in [0, 1], with R =
 ``informative_hit_rate``:
 
@@ -85,6 +109,24 @@ CONFIRMED_SUPPORT = 0.3
 #: geometry's): an appearance change (``lino_loc.appearance_change``) leaves their rates alone
 LIGHT_INVARIANT = frozenset({"disparity"})
 
+#: channels whose mixtures overlap less than this (``lino_loc.channel_agreement.overlap``; two
+#: single kernels of width s about 3 s apart, 1 m at the sensor model's 0.35 m) place the
+#: camera at different places
+MIN_OVERLAP = 0.1
+
+#: forgetting factor of the share of views whose channels disagree, per independent view
+#: (about 10 views' memory: channels that KEEP pointing at different places)
+DISAGREE_MEMORY = 0.9
+
+#: the name of the channel of all channels' views together (``ViewFitConfig.joint``)
+JOINT = "joint"
+
+#: with ``joint = "any"``, a light-invariant channel once informative stays heard until its
+#: learnt rate falls below this (chosen on the tracking evaluation's three worlds together: 0.2
+#: and 0.3 gave the same states, 0.4 and 0.45 let wrong beliefs after a kidnapping be confirmed
+#: in 2.4 % of a run's frames)
+HEARD_HIT_RATE = 0.3
+
 Verdict = Literal["confirmed", "uninformative", "misfit"]
 
 
@@ -105,6 +147,21 @@ class ViewFitConfig(BaseModel):
         0.7, ge=0.0, le=1.0, description="an informative channel whose recent hit share falls "
         "below this share of its learnt hit rate no longer fits the belief: 'lost'",
     )
+    joint: Literal["off", "any", "agreeing"] = Field(
+        "off", description="with two or more channels, their views together count as one more "
+        "channel, 'joint': a hit when some channel's view fits the belief ('any'), and, "
+        "'agreeing', only when the channels do not point at different places (or all fit)",
+    )
+    split: Literal["misfit", "uninformative"] = Field(
+        "misfit", description="an informative channel that stops fitting while another "
+        "informative one fits (the channels disagree about the belief): 'misfit' ('lost') or "
+        "'uninformative' (not confirmed: 'global')",
+    )
+    max_disagreement: float = Field(
+        1.0, ge=0.0, le=1.0, description="a belief is not confirmed ('global') while more than "
+        "this share of the recent views had channels placing the camera at different places "
+        "(lino_loc.channel_agreement overlap below MIN_OVERLAP); 1: off",
+    )
 
 
 @dataclass
@@ -112,6 +169,7 @@ class _ChannelFit:
     hits: float = 0.0
     views: float = 0.0
     fit: float = 1.0  # f_c of the current belief
+    heard: bool = False  # kept informative (``joint = "any"``, light-invariant channels)
 
     @property
     def rho(self) -> float:
@@ -126,12 +184,14 @@ class ViewFit:
     channels: dict[str, _ChannelFit] = field(default_factory=dict, init=False)
     _learnt: float = field(default=0.0, init=False)  # views learnt since reset, no forgetting
     _trusted: bool = field(default=False, init=False)
+    disagreement: float = field(default=0.0, init=False)  # recent share of disagreeing views
 
     def reset(self) -> None:
         """Forget everything (a new start)."""
         self.channels.clear()
         self._learnt = 0.0
         self._trusted = False
+        self.disagreement = 0.0
 
     def trust(self) -> None:
         """The belief was given by the user: confirmed until WARMUP_VIEWS views are learnt."""
@@ -141,6 +201,7 @@ class ViewFit:
         """A new belief: its recent fit starts again (at 1); the rates stay."""
         for ch in self.channels.values():
             ch.fit = 1.0
+        self.disagreement = 0.0
 
     def appearance_changed(self) -> None:
         """The appearance changed (lights switched): the learnt rates and the recent fit of
@@ -151,17 +212,28 @@ class ViewFit:
             if name not in LIGHT_INVARIANT:
                 ch.hits = ch.views = 0.0
                 ch.fit = 1.0
+                ch.heard = False
 
-    def update(self, excess: Mapping[str, float], views: float, learn: bool = True) -> None:
+    def update(
+        self, excess: Mapping[str, float], views: float, learn: bool = True,
+        overlap: float = math.nan,
+    ) -> None:
         """One observation: per channel the predictive log-likelihood minus that channel's
         outlier floor (nats; nan: the channel saw nothing this frame), ``views`` in [0, 1] its
-        share of an independent view, ``learn``: the belief is trusted."""
+        share of an independent view, ``learn``: the belief is trusted, ``overlap`` the
+        channels' overlap (``lino_loc.channel_agreement``; nan: unknown, one channel)."""
         v = min(max(float(views), 0.0), 1.0)
         if v <= 0.0:
             return
         a = FIT_MEMORY**v
         if learn:
             self._learnt += v
+        if math.isfinite(overlap):
+            ad = DISAGREE_MEMORY**v
+            self.disagreement = ad * self.disagreement + (1.0 - ad) * float(overlap < MIN_OVERLAP)
+        seen = [x for x in excess.values() if not math.isnan(x)]
+        if self.config.joint != "off" and len(seen) > 1:
+            excess = {**excess, JOINT: self._joint_excess(seen, overlap)}
         for name, x in excess.items():
             if math.isnan(x):
                 continue
@@ -173,10 +245,27 @@ class ViewFit:
                 m = (MEMORY_SUSPECT if suspect else MEMORY) ** v
                 ch.hits = m * ch.hits + v * hit
                 ch.views = m * ch.views + v
+            if self.config.joint == "any" and name in LIGHT_INVARIANT:
+                r = ch.rho
+                ch.heard = r >= self.config.informative_hit_rate or (ch.heard and r >= HEARD_HIT_RATE)
+
+    def _joint_excess(self, seen: list[float], overlap: float) -> float:
+        """The joint channel's excess: the largest channel's; with ``joint = "agreeing"`` the
+        smallest when the channels point at different places (overlap below MIN_OVERLAP)
+        unless every channel hits."""
+        apart = math.isfinite(overlap) and overlap < MIN_OVERLAP
+        if self.config.joint == "agreeing" and apart and min(seen) <= HIT_NATS:
+            return min(seen)
+        return max(seen)
 
     def _informative(self) -> list[_ChannelFit]:
         r = self.config.informative_hit_rate
         return [ch for ch in self.channels.values() if ch.rho >= r]
+
+    def _heard(self) -> list[_ChannelFit]:
+        """The channels whose misfit counts: the informative ones and those kept heard."""
+        r = self.config.informative_hit_rate
+        return [ch for ch in self.channels.values() if ch.rho >= r or ch.heard]
 
     def verdict(self) -> Verdict:
         """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring)."""
@@ -184,8 +273,13 @@ class ViewFit:
         if not informative:
             warm = self._trusted and self._learnt < WARMUP_VIEWS
             return "confirmed" if warm else "uninformative"
-        misfit = any(ch.fit < self.config.min_fit * ch.rho for ch in informative)
-        return "misfit" if misfit else "confirmed"
+        c = self.config
+        heard = self._heard()
+        misfits = sum(ch.fit < c.min_fit * ch.rho for ch in heard)
+        if misfits:
+            split = misfits < len(heard)
+            return "uninformative" if split and c.split == "uninformative" else "misfit"
+        return "uninformative" if self.disagreement > c.max_disagreement else "confirmed"
 
     def support(self) -> float:
         """The views' support of the belief in [0, 1] (see the module docstring); 0 before
@@ -194,11 +288,12 @@ class ViewFit:
             return 0.0
         r = self.config.informative_hit_rate
         informative = self._informative()
-        if not informative:
+        verdict = self.verdict()
+        if verdict == "misfit":
+            return 0.0
+        if not informative or verdict == "uninformative":
             b = CONFIRMED_SUPPORT
             return max(b * ch.fit * min(1.0, ch.rho / max(r, 1e-9)) for ch in self.channels.values())
-        if any(ch.fit < self.config.min_fit * ch.rho for ch in informative):
-            return 0.0
         span = max(1.0 - r, 1e-9)
         b = CONFIRMED_SUPPORT
         return min(b + (1.0 - b) * ch.fit * min(max((ch.rho - r) / span, 0.0), 1.0) for ch in informative)

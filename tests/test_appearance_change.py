@@ -116,3 +116,93 @@ def test_relearnt_averages_are_running_means() -> None:
     mean = math.log(np.mean(np.exp(lls)))
     assert pf.recovery.log_w_slow == pytest.approx(mean)
     assert pf.recovery.log_w_fast == pytest.approx(mean)
+
+
+# ----------------------------------------------------------------- per channel
+
+
+def _steady_then(det, intensity_after, disparity_after, n_before=200, n_after=200):
+    """Both channels familiar (novelty 1) for ``n_before`` views, then the given novelties;
+    returns the indices (after the step) at which update reported a light change."""
+    for _ in range(n_before):
+        assert not det.update({"intensity": 1.0, "disparity": 1.0})
+    return [k for k in range(n_after) if det.update({"intensity": intensity_after, "disparity": disparity_after})]
+
+
+def test_per_channel_light_change_is_found_when_disparity_stays_steady() -> None:
+    """Intensity doubles, disparity stays: the same delay as with intensity alone (the step
+    test above: the 32nd view), reported as a light change."""
+    det = AppearanceChangeDetector()
+    fired = _steady_then(det, 2.0, 1.0)
+    alone = AppearanceChangeDetector()
+    for _ in range(200):
+        alone.update(1.0)
+    fired_alone = [k for k in range(200) if alone.update(2.0)]
+    assert fired == fired_alone == [31]
+    assert det.changes == 1 and det.scene_changes == 0 and det.last_change == "light"
+
+
+def test_both_channels_rising_is_the_place_not_the_light() -> None:
+    """Intensity and disparity both double (an unmapped place): the evidence passes at the
+    same view, classified as a scene change, not reported (no relearning)."""
+    det = AppearanceChangeDetector()
+    assert _steady_then(det, 2.0, 2.0) == []
+    assert det.changes == 0 and det.scene_changes == 1 and det.last_change == "scene"
+
+
+def test_the_steady_bound_is_half_the_ratio_in_log() -> None:
+    """Disparity rising by a factor just under / over sqrt(RATIO) on average: light / scene."""
+    from lino_loc.appearance_change import STEADY_RATIO
+
+    assert math.log(STEADY_RATIO) == pytest.approx(0.5 * math.log(1.65))
+    under, over = AppearanceChangeDetector(), AppearanceChangeDetector()
+    _steady_then(under, 2.0, STEADY_RATIO * 0.97)
+    _steady_then(over, 2.0, STEADY_RATIO * 1.03)
+    assert (under.changes, under.scene_changes) == (1, 0)
+    assert (over.changes, over.scene_changes) == (0, 1)
+
+
+def test_a_kidnapping_keeps_both_familiar_and_raises_nothing() -> None:
+    rng = np.random.default_rng(3)
+    det = AppearanceChangeDetector()
+    for _ in range(3000):
+        n = np.exp(0.25 + 0.38 * rng.standard_normal(2))
+        assert not det.update({"intensity": float(n[0]), "disparity": float(n[1])})
+    assert det.changes == det.scene_changes == 0
+
+
+def test_per_channel_evidence_is_frame_rate_independent_and_missing_disparity_is_light() -> None:
+    """Quarter views need about four times the frames, as with one channel; a view without
+    a finite disparity novelty adds nothing to its rise (all missing: a light change)."""
+    whole, quarter = AppearanceChangeDetector(), AppearanceChangeDetector()
+    for det, v in ((whole, 1.0), (quarter, 0.25)):
+        for _ in range(200):
+            det.update({"intensity": 1.0, "disparity": 1.0}, v)
+    k_whole = next(k for k in range(1000) if whole.update({"intensity": 2.0, "disparity": 2.0 ** 0.1}, 1.0))
+    k_quarter = next(k for k in range(1000) if quarter.update({"intensity": 2.0, "disparity": 2.0 ** 0.1}, 0.25))
+    assert 3 * k_whole <= k_quarter <= 4 * k_whole + 4
+    gone = AppearanceChangeDetector()
+    _steady_then(gone, 2.0, 1.0, n_after=0)
+    fired = [k for k in range(200) if gone.update({"intensity": 2.0, "disparity": math.nan})]
+    assert fired == [31] and gone.last_change == "light"
+
+
+def test_the_filter_watches_each_channel_when_asked() -> None:
+    """A fused mixture whose channels' novelties both rise: per channel, no light change (and
+    no relearning); with per_channel off the fused (intensity) novelty alone: a change."""
+    from dataclasses import replace
+
+    model, f = _synthetic_model()
+    out = {}
+    for per_channel in (True, False):
+        pf = _filter(n=200, seed=1, appearance_change=AppearanceChangeConfig(per_channel=per_channel))
+        truth = np.array([1.0, 1.0, 0.3])
+        pf.set_pose(truth, np.diag([0.01, 0.01, 0.01]))
+        for t in range(150):
+            truth, d = _drive(truth)
+            m = model.observe(f(camera_pose(truth, 0.0))[0])
+            nov = 1.0 if t < 60 else 3.0
+            mi, md = replace(m, novelty=nov), replace(m, novelty=nov)
+            pf.update(d, 0.0, replace(m, novelty=nov, channels={"intensity": mi, "disparity": md}))
+        out[per_channel] = (pf.appearance_watch.changes, pf.appearance_watch.scene_changes)
+    assert out[True] == (0, 1) and out[False][0] == 1

@@ -130,3 +130,109 @@ def test_quality_factors() -> None:
     assert estimate_quality("tracking", cov * math.nan, 1.0, 0.0, 1.0) == 0.0
     for args in ((2.0, -1.0, 7.0), (-1.0, 0.0, -3.0)):
         assert 0.0 <= estimate_quality("tracking", cov, *args) <= 1.0
+
+
+# ----------------------------------------------------------------- channels together
+
+
+def test_two_half_reliable_channels_confirm_together() -> None:
+    """Each channel hits every other view, on alternate views (rho about 1/2 each: neither
+    can confirm), so some channel hits every view: the joint channel's rho is near 1."""
+    alone, joint = ViewFit(), ViewFit(ViewFitConfig(joint="any"))
+    for fit in (alone, joint):
+        _teach(fit, {"intensity": [HIT, MISS], "disparity": [MISS, HIT]}, 30)
+    assert alone.verdict() == "uninformative"
+    assert joint.hit_rates()["joint"] > 0.95 and joint.verdict() == "confirmed"
+    for _ in range(2):  # both channels miss: the joint channel misfits
+        joint.update({"intensity": MISS, "disparity": MISS}, 1.0)
+    assert joint.verdict() == "misfit" and joint.support() == 0.0
+
+
+def test_joint_is_the_best_channel_and_needs_two_channels() -> None:
+    """The joint channel's rate is at least each channel's; with one channel there is none."""
+    rng = np.random.default_rng(4)
+    fit = ViewFit(ViewFitConfig(joint="any"))
+    for _ in range(300):
+        h = rng.random(2) < (0.6, 0.3)
+        fit.update({"intensity": HIT if h[0] else MISS, "disparity": HIT if h[1] else MISS}, 1.0)
+    r = fit.hit_rates()
+    assert r["joint"] >= max(r["intensity"], r["disparity"]) - 1e-12
+    single = ViewFit(ViewFitConfig(joint="any"))
+    _teach(single, {"intensity": [HIT]}, 10)
+    assert "joint" not in single.hit_rates()
+
+
+def test_a_split_between_informative_channels_can_be_unconfirmed_instead_of_lost() -> None:
+    pattern = {"intensity": [HIT], "disparity": [HIT]}
+    for split, verdict in (("misfit", "misfit"), ("uninformative", "uninformative")):
+        fit = ViewFit(ViewFitConfig(split=split))
+        _teach(fit, pattern, 30)
+        for _ in range(3):
+            fit.update({"intensity": HIT, "disparity": MISS}, 1.0)
+        assert fit.verdict() == verdict
+        assert fit.support() <= CONFIRMED_SUPPORT  # never more than views that confirm
+        for _ in range(3):  # both stop fitting: lost either way
+            fit.update({"intensity": MISS, "disparity": MISS}, 1.0)
+        assert fit.verdict() == "misfit"
+
+
+def test_channels_that_keep_pointing_at_different_places_leave_the_belief_unconfirmed() -> None:
+    """The share of disagreeing views follows DISAGREE_MEMORY per view; agreeing channels
+    (overlap 1) give none, disjoint ones (overlap 0) drive it to 1; per view, not per frame."""
+    from lino_loc.view_fit import DISAGREE_MEMORY
+
+    cfg = ViewFitConfig(max_disagreement=0.5)
+    fit = ViewFit(cfg)
+    _teach(fit, {"intensity": [HIT]}, 30)
+    for _ in range(50):
+        fit.update({"intensity": HIT}, 1.0, overlap=1.0)
+    assert fit.disagreement == 0.0 and fit.verdict() == "confirmed"
+    n = 0
+    while fit.verdict() == "confirmed":
+        fit.update({"intensity": HIT}, 1.0, overlap=0.0)
+        n += 1
+    # 1 - m^n > 0.5 first at n = ceil(log 0.5 / log m)
+    assert n == math.ceil(math.log(0.5) / math.log(DISAGREE_MEMORY)) and fit.verdict() == "uninformative"
+    quarter = ViewFit(cfg)
+    _teach(quarter, {"intensity": [HIT]}, 30)
+    k = 0
+    while quarter.verdict() == "confirmed":
+        quarter.update({"intensity": HIT}, 0.25, overlap=0.0)
+        k += 1
+    assert k == math.ceil(math.log(0.5) / (0.25 * math.log(DISAGREE_MEMORY)))
+    fit.new_belief()
+    assert fit.disagreement == 0.0
+    off = ViewFit()
+    _teach(off, {"intensity": [HIT]}, 30)
+    for _ in range(50):
+        off.update({"intensity": HIT}, 1.0, overlap=0.0)
+    assert off.verdict() == "confirmed"  # max_disagreement = 1: off
+
+
+def test_with_joint_a_disparity_channel_once_informative_stays_heard() -> None:
+    """A wrong belief: disparity stops fitting while intensity hits now and then. Its learnt
+    rate falls below the informative rate, yet it stays heard (misfit) until HEARD_HIT_RATE;
+    a channel kept heard never confirms; an intensity channel is not kept."""
+    from lino_loc.view_fit import HEARD_HIT_RATE
+
+    fit = ViewFit(ViewFitConfig(joint="any"))
+    _teach(fit, {"intensity": [HIT, MISS, MISS, MISS], "disparity": [HIT, HIT, HIT, MISS]}, 10)
+    assert fit.verdict() == "confirmed"
+    seen = []
+    for k in range(40):
+        fit.update({"intensity": HIT if k % 2 else MISS, "disparity": MISS}, 1.0)
+        seen.append((fit.hit_rates()["disparity"], fit.verdict()))
+    below = [v for r, v in seen if HEARD_HIT_RATE <= r < 0.55]
+    assert below and all(v == "misfit" for v in below)
+    assert not fit.channels["intensity"].heard
+    off = ViewFit(ViewFitConfig(joint="off"))  # without joint: unheard below the informative rate
+    _teach(off, {"intensity": [HIT, MISS, MISS, MISS], "disparity": [HIT, HIT, HIT, MISS]}, 10)
+    for k in range(40):
+        off.update({"intensity": HIT if k % 2 else MISS, "disparity": MISS}, 1.0)
+    assert not off.channels["disparity"].heard
+    alone = ViewFit(ViewFitConfig(joint="any"))
+    _teach(alone, {"disparity": [HIT, HIT, HIT, MISS]}, 10)
+    ch = alone.channels["disparity"]
+    ch.hits = 0.45 * (ch.views + 1.0) - 0.5  # rate now between HEARD_HIT_RATE and informative
+    alone.update({"disparity": HIT}, 1.0)
+    assert ch.heard and HEARD_HIT_RATE < ch.rho < 0.55 and alone.verdict() == "uninformative"
