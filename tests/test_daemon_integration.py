@@ -390,13 +390,16 @@ def test_set_pose_and_global_localization_over_control(rig: Rig) -> None:
     assert p["state"] == "global"
     assert p["covariance"][0] + p["covariance"][4] > 0.5  # spread
     # set_pose at the truth: tracking again at once
-    t = s.truth_at(s.poses_since(0)[-1]["stamp"]) or s.truths[-1][1:]
+    # the latest truth (the robot drives on: an older one, e.g. at the last pose's stamp, is
+    # further behind the robot when the request is applied, the more so on a loaded machine)
+    t = s.truths[-1][1:]
     reply = request(rig.rep, {"cmd": "set_pose", "pose": {"x": t[0], "y": t[1], "theta": t[2]}})
     assert reply["ok"] is True
     t2 = time.time()
     ps = s.wait_for(lambda: s.poses_since(t2)[:3] if len(s.poses_since(t2)) >= 3 else None, 10, "poses")
     assert all(q["state"] == "tracking" for q in ps)
-    assert all(s.error(q) is not None and s.error(q) < 0.6 for q in ps)
+    errors = [s.error(q) for q in ps]
+    assert all(e is not None and e < 0.6 for e in errors), errors
     got = request(rig.rep, {"cmd": "get_pose"})
     assert got["ok"] and got["pose"]["seq"] >= ps[-1]["seq"]
 
