@@ -78,9 +78,8 @@ EVIDENCE = 5.0  # CUSUM evidence (log-novelty x independent views) for a change
 ALPHA = 0.05  # learning rate of the in-control level, per view
 #: a light-invariant channel whose log-novelty rose by more than log(STEADY_RATIO) on average
 #: over a change's views says the place, not the light, changed: half the light-variant
-#: channel's log(RATIO) (docs/architecture.md, "Lights switched while tracking": across the
-#: tube -> bulb switch the disparity channel's median log-novelty moved by -0.02..+0.05 on the
-#: three worlds, under bulb or natural light against the mapping light's by -0.07..+0.17)
+#: channel's log(RATIO) (how the channels' novelty moves with the light: docs/results.md,
+#: "Depth in the self-checks")
 STEADY_RATIO = math.sqrt(RATIO)
 
 Change = Literal["light", "scene"]

@@ -122,9 +122,8 @@ DISAGREE_MEMORY = 0.9
 JOINT = "joint"
 
 #: with ``joint = "any"``, a light-invariant channel once informative stays heard until its
-#: learnt rate falls below this (chosen on the tracking evaluation's three worlds together: 0.2
-#: and 0.3 gave the same states, 0.4 and 0.45 let wrong beliefs after a kidnapping be confirmed
-#: in 2.4 % of a run's frames)
+#: learnt rate falls below this (chosen on the tracking evaluation's three worlds together:
+#: docs/results.md, "Depth in the self-checks")
 HEARD_HIT_RATE = 0.3
 
 Verdict = Literal["confirmed", "uninformative", "misfit"]
