@@ -46,6 +46,20 @@ def test_delay_is_time_to_leave_tracking_and_zero_when_not_tracking_at_the_start
     assert lost_delays(t, err, states, merge_s=1.0) == [(1.5, True), (0.0, True)]
 
 
+def test_a_confirmation_while_wrong_counts_from_the_confirmation() -> None:
+    """An episode that starts while searching (``global``) and is then confirmed while still
+    wrong: its delay runs from the confirmation to the state's leaving ``tracking``; a frame
+    count that starts at the episode's first frame would call it caught at 0."""
+    t = _stamps(20, 0.5)
+    err = [3.0] * 16 + [0.1] * 4
+    states = [G] * 4 + [T] * 8 + [L] * 2 + [T] * 6  # wrong 4..11 (4 s), right again from 16
+    assert lost_delays(t, err, states) == [(4.0, False)]  # the second stretch lasts to the end
+    states = [G] * 4 + [T] * 8 + [L] * 4 + [T] * 4
+    assert lost_delays(t, err, states) == [(4.0, True)]
+    assert lost_delays(t, err, [G] * 20) == [(0.0, True)]
+    assert lost_delays(t, err, [T] * 3 + [G] * 17) == [(1.5, True)]  # a kidnapping, caught
+
+
 def test_an_episode_that_stays_tracking_is_not_caught_and_counts_its_duration() -> None:
     t = _stamps(20, 0.5)
     err = [0.0] * 5 + [2.0] * 15  # a kidnapping at frame 5, never noticed
@@ -61,19 +75,19 @@ def test_summary_share_within_five_seconds() -> None:
     err = np.zeros(60)
     states = [T] * 60
     err[5:15] = 2.0  # caught after 3 s
-    states[8] = L
+    states[8:15] = [L] * 7
     err[25:40] = 2.0  # caught after 7 s
-    states[32] = L
-    err[50:55] = 2.0  # starts while global
+    states[32:40] = [L] * 8
+    err[50:55] = 2.0  # starts while global, then tracking while wrong to its end: not caught
     states[50] = G
     s = lost_delay_summary(t, err, states)
-    assert s["episodes"] == 3 and s["caught"] == 3
-    assert s["caught_within_s_share"] == pytest.approx(2 / 3)
+    assert s["episodes"] == 3 and s["caught"] == 2
+    assert s["caught_within_s_share"] == pytest.approx(1 / 3)
     assert s["median_s"] == pytest.approx(3.0) and s["max_s"] == pytest.approx(7.0)
     m = honesty_metrics(t, err, states)
     assert m["lost_delay_s"] == s
-    assert m["tracking_fraction"] == pytest.approx(57 / 60)
-    assert m["confident_wrong_fraction"] == pytest.approx((9 + 14 + 4) / 60)
+    assert m["tracking_fraction"] == pytest.approx(44 / 60)
+    assert m["confident_wrong_fraction"] == pytest.approx((3 + 7 + 4) / 60)
 
 
 def test_no_episode_gives_full_share_and_no_delays() -> None:

@@ -13,11 +13,15 @@ optionally the estimate's ``quality`` q_k in [0, 1].
   before the dip to the first wrong frame after it) are merged into one: an error that
   hovers about 1 m is one episode, not many. A kidnapping (the robot carried elsewhere) is
   such an episode.
-- :func:`lost_delays`: per episode, the delay from its first frame to the first frame of the
-  episode whose state is not ``tracking`` (``lost`` or ``global``). An episode that starts
-  while not tracking is caught at 0. An episode whose frames are all ``tracking`` is NOT
-  CAUGHT: its delay is reported as the episode's duration (the true delay is at least
-  that; the state never left ``tracking`` while the error was above the limit).
+- :func:`lost_delays`: per episode, how long the state said ``tracking`` while wrong. Each
+  stretch of consecutive ``tracking`` frames inside the episode (from the episode's first
+  frame when it starts while tracking, as a kidnapping does; or from a confirmation while
+  wrong, as when a search settles on the wrong place) is CAUGHT when a frame of the same
+  episode after it is not ``tracking`` (``lost`` or ``global``), its delay the time from the
+  stretch's first frame to that frame; a stretch that lasts to the episode's end is NOT
+  CAUGHT, its delay the time from its first to the episode's last frame (the true delay is at
+  least that). The episode's delay is its stretches' largest, caught when all of them are;
+  an episode never ``tracking`` is caught at 0.
 - :func:`lost_delay_summary`: ``episodes``, ``caught`` (episodes whose state left
   ``tracking``), ``caught_within_s_share`` (share of the episodes caught within ``within_s``,
   :data:`WITHIN_S` = 5 s, delay <= within_s; 1.0 when there is no episode), ``median_s`` and
@@ -81,17 +85,23 @@ def lost_delays(
     stamps: ArrayLike, errors: ArrayLike, states: Sequence[str], wrong_m: float = WRONG_M,
     merge_s: float = MERGE_S,
 ) -> list[tuple[float, bool]]:
-    """(delay s, caught) per episode of :func:`wrong_episodes`: the time from the episode's
-    first frame to its first frame not ``tracking``; not caught: its duration and False."""
+    """(delay s, caught) per episode of :func:`wrong_episodes`: its ``tracking`` stretches'
+    largest delay, caught when every stretch is (see the module docstring)."""
     t, e, tracking = _arrays(stamps, errors, states)
-    out = []
-    for a, b in wrong_episodes(t, e, wrong_m, merge_s):
-        off = np.flatnonzero(~tracking[a : b + 1])
-        if off.size:
-            out.append((float(t[a + off[0]] - t[a]), True))
-        else:
-            out.append((float(t[b] - t[a]), False))
-    return out
+    return [_episode_delay(t[a : b + 1], tracking[a : b + 1]) for a, b in wrong_episodes(t, e, wrong_m, merge_s)]
+
+
+def _episode_delay(t: np.ndarray, tracking: np.ndarray) -> tuple[float, bool]:
+    """One episode's (delay, caught) from its frames' stamps and tracking flags."""
+    flags = tracking.astype(np.int8)
+    edges = np.diff(np.concatenate(([0], flags, [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # ends: first frame after
+    delay, caught = 0.0, True
+    for a, b in zip(starts, ends, strict=True):
+        ok = b < t.size
+        delay = max(delay, float(t[b] - t[a]) if ok else float(t[-1] - t[a]))
+        caught = caught and ok
+    return delay, caught
 
 
 def lost_delay_summary(
