@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -58,6 +60,8 @@ def test_a_confirmation_while_wrong_counts_from_the_confirmation() -> None:
     assert lost_delays(t, err, states) == [(4.0, True)]
     assert lost_delays(t, err, [G] * 20) == [(0.0, True)]
     assert lost_delays(t, err, [T] * 3 + [G] * 17) == [(1.5, True)]  # a kidnapping, caught
+    assert all(type(x) is float and type(ok) is bool for x, ok in lost_delays(t, err, states))
+    json.dumps(lost_delay_summary(t, err, states))  # plain Python numbers: the evaluations' JSON
 
 
 def test_an_episode_that_stays_tracking_is_not_caught_and_counts_its_duration() -> None:

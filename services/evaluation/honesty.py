@@ -98,7 +98,7 @@ def _episode_delay(t: np.ndarray, tracking: np.ndarray) -> tuple[float, bool]:
     starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # ends: first frame after
     delay, caught = 0.0, True
     for a, b in zip(starts, ends, strict=True):
-        ok = b < t.size
+        ok = bool(b < t.size)
         delay = max(delay, float(t[b] - t[a]) if ok else float(t[-1] - t[a]))
         caught = caught and ok
     return delay, caught
