@@ -74,6 +74,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 from scipy.special import i0e
 
+from lino_loc.interpolated_appearance import InterpolatedSensorModel
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 from lino_loc.sensor_model import LOG_2PI, NearestNeighbourSensorModel, lambda_log_weights
@@ -495,6 +496,78 @@ class ActionEvaluator:
             current_entropy=float(discrete_entropy(lw)),
             n_particles=int(p.shape[0]),
         )
+
+
+class InterpolatedActionEvaluator:
+    """H(u) with the interpolated sensor model (``lino_loc.interpolated_appearance``).
+
+    The predicted observation of particle i after the move is the map's appearance
+    interpolated at its camera pose, ``y_i(u) = f(camera_pose(x_i, u))`` (not the nearest map
+    entry), and the likelihood of it at particle k is the model's own,
+    ``(1 - w_out) L_ik / Z_i + w_out u``, ``L_ik = exp(-|W (f(c_i) - f(c_k))|^2 / 2)``. The
+    normalizer Z of a predicted observation is interpolated from those of the map entries'
+    own features (:attr:`InterpolatedSensorModel.node_log_normalizer`, computed once) with the
+    same trilinear weights: exact at the lattice poses. H_i(u) and H(u) as in the module
+    docstring; a predicted observation at a pose without map corners carries no information
+    (H_i = the current entropy). Cost: A M interpolations and A (M x M) distance products."""
+
+    def __init__(self, model: InterpolatedSensorModel, config: ActiveVisionConfig | None = None) -> None:
+        self.config = config or ActiveVisionConfig()
+        self.model = model
+        self._node_log_z = model.node_log_normalizer
+
+    @property
+    def actions(self) -> FloatArray:
+        return self.config.actions()
+
+    def _predicted(self, p: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Whitened interpolated features (A, M, d), log Z (A, M) and validity (A, M) of the
+        camera poses of particles ``p`` at pans ``u``."""
+        a_n, m = u.size, p.shape[0]
+        th = (p[None, :, 2] + u[:, None]).reshape(-1)
+        px, py = np.tile(p[:, 0], a_n), np.tile(p[:, 1], a_n)
+        app = self.model.appearance
+        idx, w = app.lattice.corners(px, py, th)
+        f, ok = app.features_trig(px, py, th)
+        log_z = np.einsum("mc,mc->m", w, self._node_log_z[np.maximum(idx, 0)])
+        fw = (f / self.model.scale).reshape(a_n, m, -1)
+        return fw, log_z.reshape(a_n, m), ok.reshape(a_n, m)
+
+    def evaluate(
+        self,
+        particles: ArrayLike,
+        log_weights: ArrayLike,
+        actions: ArrayLike | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> ActionValues:
+        """H(u) for every candidate pan angle (default: the configured ``n_actions``)."""
+        u = self.actions if actions is None else np.asarray(actions, dtype=np.float64).reshape(-1)
+        p, lw = subsample(particles, log_weights, self.config.max_particles, rng)
+        fw, log_z, ok = self._predicted(p, u)
+        sq = np.einsum("amd,amd->am", fw, fw)
+        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.matmul(fw, fw.transpose(0, 2, 1))
+        lp = self.model.log_inlier - log_z[:, :, None] - 0.5 * np.maximum(d2, 0.0)
+        lp = np.where(ok[:, None, :], lp, -np.inf)
+        if self.model.log_floor > -math.inf:
+            floor = np.where(self.model.bounds.contains(p[:, :2]), self.model.log_floor, -np.inf)
+            np.logaddexp(lp, floor[None, None, :], out=lp)
+        lq = lp + lw[None, None, :]
+        h0 = float(discrete_entropy(lw))
+        with np.errstate(invalid="ignore"):
+            h = discrete_entropy(lq, axis=-1)
+        h = np.where(ok & np.isfinite(h) & np.isfinite(lq).any(axis=-1), h, h0)
+        return ActionValues(actions=u, expected_entropy=h @ np.exp(lw), current_entropy=h0,
+                            n_particles=int(p.shape[0]))
+
+
+def action_evaluator(
+    model: NearestNeighbourSensorModel | InterpolatedSensorModel, config: ActiveVisionConfig | None = None
+) -> ActionEvaluator | InterpolatedActionEvaluator:
+    """The H(u) evaluator of a sensor model: :class:`ActionEvaluator` for the nearest-neighbour
+    model, :class:`InterpolatedActionEvaluator` for the interpolated one."""
+    if isinstance(model, InterpolatedSensorModel):
+        return InterpolatedActionEvaluator(model, config)
+    return ActionEvaluator(model, config)
 
 
 # --------------------------------------------------------------------------- policy

@@ -649,7 +649,9 @@ class AuxiliaryParticleFilter:
         cam = x.copy()
         cam[:, 2] += pan
         log_p = mixture.log_pdf(cam)  # log p(y | x), log_scale included
-        log_q = log_p - mixture.log_scale - log_q_free
+        # the density sample() draws from: the mixture itself (log_p - log_scale) for the
+        # nearest-neighbour model, its proposal kernels for lino_loc.interpolated_appearance
+        log_q = mixture.proposal_log_pdf(cam) - log_q_free
         log_u = self.bounds.log_uniform_density - self._log_free_fraction()
         log_r = np.logaddexp(math.log1p(-phi) + log_u if phi < 1.0 else -math.inf,
                              math.log(phi) + log_q)
