@@ -656,7 +656,7 @@ class ActivePolicy:
 
     def __init__(
         self,
-        evaluator: ActionEvaluator,
+        evaluator: ActionEvaluator | InterpolatedActionEvaluator,
         config: ActiveVisionConfig | None = None,
         head_limits: tuple[float, float] | None = None,
     ) -> None:

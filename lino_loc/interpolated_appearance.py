@@ -359,10 +359,11 @@ class InterpolatedSensorModel:
 
 
 def fuse_likelihoods(
-    observations: Mapping[str, InterpolatedLikelihood], config: FusionConfig | None = None
-) -> InterpolatedLikelihood:
+    observations: Mapping[str, PoseMixture], config: FusionConfig | None = None
+) -> PoseMixture:
     """Eq. 8 (disjunctive: log sum_c w_c p_c) or eq. 7 (conjunctive: sum_c log p_c) of the
-    channels' interpolated likelihoods; the proposal is :func:`lino_loc.fusion.fuse` of their
+    channels' observations (interpolated likelihoods, or any PoseMixture), as an
+    :class:`InterpolatedLikelihood`; the proposal is :func:`lino_loc.fusion.fuse` of their
     kernels. Weights as in ``fuse`` (``w_i`` intensity, ``w_d`` disparity, normalized). A single
     channel is returned unchanged."""
     c = config or FusionConfig()
@@ -377,7 +378,8 @@ def fuse_likelihoods(
         logw = np.log(w / w.sum())
 
     def density(px: FloatArray, py: FloatArray, th: FloatArray) -> FloatArray:
-        parts = [o.density(px, py, th) for o in obs if o.density is not None]
+        x = np.column_stack([px, py, th])
+        parts = [o.log_pdf(x) for o in obs]
         if c.mode == "conjunctive":
             return np.sum(parts, axis=0)
         return logsumexp(np.stack([lp + lw for lp, lw in zip(parts, logw, strict=True)]), axis=0)
