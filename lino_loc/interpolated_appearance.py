@@ -38,9 +38,10 @@ used as a density over camera poses with the same uniform outlier component:
 
 An observation is an :class:`InterpolatedLikelihood`, a :class:`lino_loc.sensor_model.
 PoseMixture` whose ``log_pdf`` / ``log_pdf_trig`` are the density above and whose kernels
-(the J map entries nearest to y in the whitened features, weights L(x_n), the sensor model's
-kernel widths) are the proposal that ``sample`` draws from (global localization, kidnap
-recovery); ``proposal_log_pdf`` is that proposal's density. Disjunctive and conjunctive fusion
+are the proposal that ``sample`` draws from (global localization, kidnap recovery): the
+nearest-neighbour model's mixture of y (``lino_loc.sensor_model``: its J nearest map entries,
+lambda weights, kernel widths, outlier component; also its novelty); ``proposal_log_pdf`` is
+that proposal's density. Disjunctive and conjunctive fusion
 of such observations (eq. 7 / 8): :func:`fuse_likelihoods`.
 
 Usage::
@@ -339,22 +340,16 @@ class InterpolatedSensorModel:
     def observe(self, y: ArrayLike, j: int | None = None) -> InterpolatedLikelihood:
         """The sensor model of one observed feature vector y (d,)."""
         q = np.asarray(y, dtype=np.float64).reshape(-1)
-        _, raw = self.nn.neighbours(q, 1)  # validates y
+        base = self.nn.observe(q, j)  # validates y; its mixture is the proposal
         yw = q / self.scale
         log_z = float(self.log_normalizer(yw[None, :])[0])
-        d2 = np.maximum(self._white_sq - 2.0 * self._white @ yw + float(yw @ yw), 0.0)
-        k = min(self.j if j is None else int(j), d2.size)
-        near = np.argpartition(d2, k - 1)[:k]
-        c = self.config
-        base = PoseMixture.create(self.poses[near], -0.5 * d2[near], c.sigma_xy, c.sigma_theta,
-                                  c.outlier_weight, self.bounds, neighbours=near)
 
         def density(px: FloatArray, py: FloatArray, th: FloatArray) -> FloatArray:
             return self.log_density(yw, log_z, px, py, th)
 
         return InterpolatedLikelihood(
             base.poses, base.log_weights, base.sigma_xy, base.sigma_theta, base.outlier_log_weight,
-            base.bounds, 0.0, base.neighbours, self.nn.novelty(float(raw[0, 0])), None, density,
+            base.bounds, 0.0, base.neighbours, base.novelty, None, density,
         )
 
 
