@@ -509,7 +509,9 @@ class InterpolatedActionEvaluator:
     own features (:attr:`InterpolatedSensorModel.node_log_normalizer`, computed once) with the
     same trilinear weights: exact at the lattice poses. H_i(u) and H(u) as in the module
     docstring; a predicted observation at a pose without map corners carries no information
-    (H_i = the current entropy). Cost: A M interpolations and A (M x M) distance products."""
+    (H_i = the current entropy). Cost: A M interpolations and A (M x M) distance products; the
+    weights are summed in linear space in float32, each row scaled by Z_i / (1 - w_out) (which
+    leaves its normalized weights unchanged), as :class:`ActionEvaluator` does."""
 
     def __init__(self, model: InterpolatedSensorModel, config: ActiveVisionConfig | None = None) -> None:
         self.config = config or ActiveVisionConfig()
@@ -544,19 +546,32 @@ class InterpolatedActionEvaluator:
         u = self.actions if actions is None else np.asarray(actions, dtype=np.float64).reshape(-1)
         p, lw = subsample(particles, log_weights, self.config.max_particles, rng)
         fw, log_z, ok = self._predicted(p, u)
-        sq = np.einsum("amd,amd->am", fw, fw)
-        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.matmul(fw, fw.transpose(0, 2, 1))
-        lp = self.model.log_inlier - log_z[:, :, None] - 0.5 * np.maximum(d2, 0.0)
-        lp = np.where(ok[:, None, :], lp, -np.inf)
+        pi = np.exp(lw)
+        f32 = fw.astype(np.float32)
+        sq = np.einsum("amd,amd->am", f32, f32)
+        # -|f_i - f_k|^2 / 2 (A, i, k), then L = exp(.) in [0, 1]; a particle without features: 0
+        t = np.matmul(f32, f32.transpose(0, 2, 1))
+        t -= 0.5 * sq[:, :, None]
+        t -= 0.5 * sq[:, None, :]
+        np.minimum(t, 0.0, out=t)
+        np.exp(t, out=t)
+        t *= ok[:, None, :]
+        # q_ik / ((1 - w) / Z_i) = pi_k (L_ik + w u Z_i / (1 - w) [k inside]): the row's scale
+        # does not change its normalized weights
         if self.model.log_floor > -math.inf:
-            floor = np.where(self.model.bounds.contains(p[:, :2]), self.model.log_floor, -np.inf)
-            np.logaddexp(lp, floor[None, None, :], out=lp)
-        lq = lp + lw[None, None, :]
+            c = np.exp(np.minimum(log_z + self.model.log_floor - self.model.log_inlier, 80.0))
+            inside = self.model.bounds.contains(p[:, :2])
+            t += (c[:, :, None] * inside[None, None, :]).astype(np.float32)
+        t *= (pi / pi.max()).astype(np.float32)[None, None, :]
+        z = t.sum(axis=-1, dtype=np.float64)
+        lq = np.zeros_like(t)
+        np.log(t, out=lq, where=t > 0)
+        sql = np.einsum("aik,aik->ai", t, lq, dtype=np.float64)
         h0 = float(discrete_entropy(lw))
-        with np.errstate(invalid="ignore"):
-            h = discrete_entropy(lq, axis=-1)
-        h = np.where(ok & np.isfinite(h) & np.isfinite(lq).any(axis=-1), h, h0)
-        return ActionValues(actions=u, expected_entropy=h @ np.exp(lw), current_entropy=h0,
+        good = ok & (z > 0)
+        h = np.full(z.shape, h0)
+        h[good] = np.log(z[good]) - sql[good] / z[good]
+        return ActionValues(actions=u, expected_entropy=h @ pi, current_entropy=h0,
                             n_particles=int(p.shape[0]))
 
 

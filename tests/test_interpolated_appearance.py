@@ -184,3 +184,30 @@ def test_fused_channels() -> None:
     con = fuse_likelihoods({"intensity": oi, "disparity": od}, FusionConfig(mode="conjunctive"))
     np.testing.assert_allclose(con.log_pdf(cam), oi.log_pdf(cam) + od.log_pdf(cam))
     assert dis.novelty == oi.novelty
+
+
+def test_action_values_equal_the_model_s_own_likelihoods() -> None:
+    """H(u) from the evaluator's float32 linear-space sums equals the entropy of the belief
+    reweighted by the model's own log_density of each predicted observation."""
+    from lino_loc.active_vision import discrete_entropy
+
+    poses = lattice_poses()
+    model = InterpolatedSensorModel(poses, smooth_field(poses), SensorModelConfig(outlier_weight=0.05),
+                                    InterpolationConfig(residual_scale=0.5))
+    ev = InterpolatedActionEvaluator(model, ActiveVisionConfig(n_actions=3, max_particles=40))
+    rng = np.random.default_rng(7)
+    p = np.column_stack([rng.uniform(0.6, 4.4, 30), rng.uniform(-0.9, 2.2, 30), rng.uniform(-3, 3, 30)])
+    lw = rng.normal(size=30)
+    lw -= np.log(np.exp(lw).sum())
+    u = np.array([-1.0, 0.2, 2.0])
+    got = ev.evaluate(p, lw, u).expected_entropy
+    want = []
+    for a in u:
+        th = p[:, 2] + a
+        f, ok = model.appearance.features_trig(p[:, 0], p[:, 1], th)
+        idx, w = model.appearance.lattice.corners(p[:, 0], p[:, 1], th)
+        log_z = np.einsum("mc,mc->m", w, model.node_log_normalizer[np.maximum(idx, 0)])
+        h = [float(discrete_entropy(lw + model.log_density(f[i] / model.scale, log_z[i], p[:, 0], p[:, 1], th)))
+             for i in range(30)]
+        want.append(float(np.dot(np.exp(lw), h)))
+    np.testing.assert_allclose(got, want, atol=2e-4)
