@@ -74,6 +74,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 from scipy.special import i0e
 
+from lino_loc.interpolated_appearance import InterpolatedSensorModel
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 from lino_loc.sensor_model import LOG_2PI, NearestNeighbourSensorModel, lambda_log_weights
@@ -497,6 +498,93 @@ class ActionEvaluator:
         )
 
 
+class InterpolatedActionEvaluator:
+    """H(u) with the interpolated sensor model (``lino_loc.interpolated_appearance``).
+
+    The predicted observation of particle i after the move is the map's appearance
+    interpolated at its camera pose, ``y_i(u) = f(camera_pose(x_i, u))`` (not the nearest map
+    entry), and the likelihood of it at particle k is the model's own,
+    ``(1 - w_out) L_ik / Z_i + w_out u``, ``L_ik = exp(-|W (f(c_i) - f(c_k))|^2 / 2)``. The
+    normalizer Z of a predicted observation is interpolated from those of the map entries'
+    own features (:attr:`InterpolatedSensorModel.node_log_normalizer`, computed once) with the
+    same trilinear weights: exact at the lattice poses. H_i(u) and H(u) as in the module
+    docstring; a predicted observation at a pose without map corners carries no information
+    (H_i = the current entropy). Cost: A M interpolations and A (M x M) distance products; the
+    weights are summed in linear space in float32, each row scaled by Z_i / (1 - w_out) (which
+    leaves its normalized weights unchanged), as :class:`ActionEvaluator` does."""
+
+    def __init__(self, model: InterpolatedSensorModel, config: ActiveVisionConfig | None = None) -> None:
+        self.config = config or ActiveVisionConfig()
+        self.model = model
+        self._node_log_z = model.node_log_normalizer
+
+    @property
+    def actions(self) -> FloatArray:
+        return self.config.actions()
+
+    def _predicted(self, p: FloatArray, u: FloatArray) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Whitened interpolated features (A, M, d), log Z (A, M) and validity (A, M) of the
+        camera poses of particles ``p`` at pans ``u``."""
+        a_n, m = u.size, p.shape[0]
+        th = (p[None, :, 2] + u[:, None]).reshape(-1)
+        px, py = np.tile(p[:, 0], a_n), np.tile(p[:, 1], a_n)
+        app = self.model.appearance
+        idx, w = app.lattice.corners(px, py, th)
+        f, ok = app.features_trig(px, py, th)
+        log_z = np.einsum("mc,mc->m", w, self._node_log_z[np.maximum(idx, 0)])
+        fw = (f / self.model.scale).reshape(a_n, m, -1)
+        return fw, log_z.reshape(a_n, m), ok.reshape(a_n, m)
+
+    def evaluate(
+        self,
+        particles: ArrayLike,
+        log_weights: ArrayLike,
+        actions: ArrayLike | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> ActionValues:
+        """H(u) for every candidate pan angle (default: the configured ``n_actions``)."""
+        u = self.actions if actions is None else np.asarray(actions, dtype=np.float64).reshape(-1)
+        p, lw = subsample(particles, log_weights, self.config.max_particles, rng)
+        fw, log_z, ok = self._predicted(p, u)
+        pi = np.exp(lw)
+        f32 = fw.astype(np.float32)
+        sq = np.einsum("amd,amd->am", f32, f32)
+        # -|f_i - f_k|^2 / 2 (A, i, k), then L = exp(.) in [0, 1]; a particle without features: 0
+        t = np.matmul(f32, f32.transpose(0, 2, 1))
+        t -= 0.5 * sq[:, :, None]
+        t -= 0.5 * sq[:, None, :]
+        np.minimum(t, 0.0, out=t)
+        np.exp(t, out=t)
+        t *= ok[:, None, :]
+        # q_ik / ((1 - w) / Z_i) = pi_k (L_ik + w u Z_i / (1 - w) [k inside]): the row's scale
+        # does not change its normalized weights
+        if self.model.log_floor > -math.inf:
+            c = np.exp(np.minimum(log_z + self.model.log_floor - self.model.log_inlier, 80.0))
+            inside = self.model.bounds.contains(p[:, :2])
+            t += (c[:, :, None] * inside[None, None, :]).astype(np.float32)
+        t *= (pi / pi.max()).astype(np.float32)[None, None, :]
+        z = t.sum(axis=-1, dtype=np.float64)
+        lq = np.zeros_like(t)
+        np.log(t, out=lq, where=t > 0)
+        sql = np.einsum("aik,aik->ai", t, lq, dtype=np.float64)
+        h0 = float(discrete_entropy(lw))
+        good = ok & (z > 0)
+        h = np.full(z.shape, h0)
+        h[good] = np.log(z[good]) - sql[good] / z[good]
+        return ActionValues(actions=u, expected_entropy=h @ pi, current_entropy=h0,
+                            n_particles=int(p.shape[0]))
+
+
+def action_evaluator(
+    model: NearestNeighbourSensorModel | InterpolatedSensorModel, config: ActiveVisionConfig | None = None
+) -> ActionEvaluator | InterpolatedActionEvaluator:
+    """The H(u) evaluator of a sensor model: :class:`ActionEvaluator` for the nearest-neighbour
+    model, :class:`InterpolatedActionEvaluator` for the interpolated one."""
+    if isinstance(model, InterpolatedSensorModel):
+        return InterpolatedActionEvaluator(model, config)
+    return ActionEvaluator(model, config)
+
+
 # --------------------------------------------------------------------------- policy
 
 
@@ -583,7 +671,7 @@ class ActivePolicy:
 
     def __init__(
         self,
-        evaluator: ActionEvaluator,
+        evaluator: ActionEvaluator | InterpolatedActionEvaluator,
         config: ActiveVisionConfig | None = None,
         head_limits: tuple[float, float] | None = None,
     ) -> None:

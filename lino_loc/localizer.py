@@ -1,7 +1,8 @@
 """The Localizer: one object that turns (odometry, pan, image[, disparity]) into a pose estimate.
 
-It owns the appearance map's sensor models (one nearest-neighbour model per channel, section
-3), the odometry action model, the fusion rule (eq. 7 / 8) and the auxiliary particle filter
+It owns the appearance map's sensor models (one per channel: the nearest-neighbour model of
+section 3, or with ``sensor_model = "interpolated"`` the map's appearance interpolated between
+survey poses, ``lino_loc.interpolated_appearance``), the odometry action model, the fusion rule (eq. 7 / 8) and the auxiliary particle filter
 (eq. 2-6). One call of :meth:`Localizer.update`:
 
 1. projects the image (and the disparity map, when the map has a disparity channel) through
@@ -38,6 +39,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from lino_loc.errors import LinoLocError
 from lino_loc.fusion import FusionConfig, fuse
 from lino_loc.fusion_weights import AdaptiveFusionWeights
+from lino_loc.interpolated_appearance import (
+    InterpolatedSensorModel,
+    InterpolationConfig,
+    fuse_likelihoods,
+)
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig, FreeSpace
 from lino_loc.pose_estimate import Estimate
@@ -46,6 +52,7 @@ from lino_loc.sensor_model import (
     NearestNeighbourSensorModel,
     PoseMixture,
     SensorModelConfig,
+    SensorModelKind,
 )
 
 FloatArray = NDArray[np.float64]
@@ -70,6 +77,12 @@ class LocalizerConfig(BaseModel):
 
     motion: MotionModelConfig = Field(default_factory=MotionModelConfig)
     sensor: SensorModelConfig = Field(default_factory=SensorModelConfig)
+    sensor_model: SensorModelKind = Field(
+        "nearest_neighbour", description="p(y | x): the J nearest map entries (section 3, "
+        "lino_loc/sensor_model.py) or the map's appearance interpolated between survey poses "
+        "(lino_loc/interpolated_appearance.py; the map must be a survey lattice)",
+    )
+    interpolation: InterpolationConfig = Field(default_factory=InterpolationConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     fusion: FusionConfig = Field(default_factory=FusionConfig)
 
@@ -91,14 +104,8 @@ class Localizer:
         if "intensity" not in channels:
             raise LinoLocError(f"appearance map: no 'intensity' channel (has {sorted(channels)})")
         self.bounds = Bounds.from_poses(poses, self.config.sensor.map_margin)
-        self.models: dict[str, NearestNeighbourSensorModel] = {
-            name: NearestNeighbourSensorModel(
-                poses,
-                np.asarray(ch.features, dtype=np.float64),
-                self.config.sensor,
-                j=min(self.config.sensor.j, poses.shape[0]),
-                bounds=self.bounds,
-            )
+        self.models: dict[str, NearestNeighbourSensorModel | InterpolatedSensorModel] = {
+            name: self._model(poses, np.asarray(ch.features, dtype=np.float64))
             for name, ch in channels.items()
             if name in ("intensity", "disparity")
         }
@@ -117,6 +124,16 @@ class Localizer:
             free_space=free_space,
             rng=seed_rng,
         )
+
+    def _model(
+        self, poses: FloatArray, features: FloatArray
+    ) -> NearestNeighbourSensorModel | InterpolatedSensorModel:
+        """One channel's sensor model, of the configured kind (``sensor_model``)."""
+        c = self.config
+        j = min(c.sensor.j, poses.shape[0])
+        if c.sensor_model == "interpolated":
+            return InterpolatedSensorModel(poses, features, c.sensor, c.interpolation, self.bounds, j)
+        return NearestNeighbourSensorModel(poses, features, c.sensor, j=j, bounds=self.bounds)
 
     # ----------------------------------------------------------------- observation
 
@@ -162,7 +179,10 @@ class Localizer:
         if len(mixtures) == 2 and self._adaptive is not None and fc.mode == "disjunctive":
             w = self._adaptive.weights(list(mixtures))
             fc = fc.model_copy(update={"w_i": w["intensity"], "w_d": w["disparity"]})
-        fused = fuse(mixtures, fc)
+        if self.config.sensor_model == "interpolated":
+            fused = fuse_likelihoods(mixtures, fc)
+        else:
+            fused = fuse(mixtures, fc)
         if "intensity" in mixtures and math.isnan(fused.novelty):
             # the filter's kidnap recovery trusts the observation only when the image is
             # familiar; the intensity channel says how familiar (see PoseMixture.novelty)
@@ -240,8 +260,11 @@ class Localizer:
         the start (``lino_loc.appearance_change``); 0 when that watch is switched off."""
         return self.filter.appearance_changes
 
-    def sensor_model(self, channel: str = "intensity") -> NearestNeighbourSensorModel:
-        """The nearest-neighbour sensor model (section 3) of one of the map's channels."""
+    def sensor_model(
+        self, channel: str = "intensity"
+    ) -> NearestNeighbourSensorModel | InterpolatedSensorModel:
+        """The sensor model of one of the map's channels (the configured kind: the
+        nearest-neighbour model of section 3 by default)."""
         try:
             return self.models[channel]
         except KeyError:

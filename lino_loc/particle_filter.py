@@ -606,14 +606,16 @@ class AuxiliaryParticleFilter:
         free space and all headings, u = 1 / (A_free 2 pi). Proposal: the deterministic mixture
         r(x) = (1 - phi) u(x) + phi q(x) with phi = ``global_proposal_fraction``: N - m
         particles keep their uniform draws (moved by the odometry), m = round(phi N) are drawn
-        from q, the sensor-model mixture of the image restricted to the free space (q(x) =
-        mixture(camera_pose(x, pan)) / Q_free; the pan is a rotation, its Jacobian is 1). The
+        from q, the distribution the observation samples from restricted to the free space
+        (q(x) = proposal(camera_pose(x, pan)) / Q_free, ``PoseMixture.proposal_log_pdf``: the
+        sensor-model mixture itself for the nearest-neighbour model, its proposal kernels for
+        the interpolated one; the pan is a rotation, its Jacobian is 1). The
         importance weight of EVERY particle (balance heuristic, Veach 1997) is
 
             w(x) = u(x) p(y | x) / r(x) = u p(y | x) / ((1 - phi) u + phi q(x)).
 
-        For phi = 1 and p(y | x) = s q(x) (the mixture is the sensor model up to its constant
-        s = exp(log_scale)) this is w = u s: constant. The uniform share keeps poses the J
+        For phi = 1 and p(y | x) = s q(x) (the nearest-neighbour mixture is the sensor model up
+        to its constant s = exp(log_scale)) this is w = u s: constant. The uniform share keeps poses the J
         neighbours of this one image miss. ``mean(w)`` is an unbiased estimate of the
         predictive likelihood p(y) = integral u p(y | x) dx, fed to the w_slow / w_fast averages
         like the APF's. Monte Carlo estimates of A_free (fixed seed) and of Q_free (the share
@@ -649,7 +651,9 @@ class AuxiliaryParticleFilter:
         cam = x.copy()
         cam[:, 2] += pan
         log_p = mixture.log_pdf(cam)  # log p(y | x), log_scale included
-        log_q = log_p - mixture.log_scale - log_q_free
+        # the density sample() draws from: the mixture itself (log_p - log_scale) for the
+        # nearest-neighbour model, its proposal kernels for lino_loc.interpolated_appearance
+        log_q = mixture.proposal_log_pdf(cam) - log_q_free
         log_u = self.bounds.log_uniform_density - self._log_free_fraction()
         log_r = np.logaddexp(math.log1p(-phi) + log_u if phi < 1.0 else -math.inf,
                              math.log(phi) + log_q)

@@ -69,6 +69,9 @@ from lino_loc.resampling import logsumexp
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+#: Which sensor model builds p(y | x): this module's J nearest map entries, or the map's
+#: appearance interpolated between survey poses (lino_loc.interpolated_appearance).
+SensorModelKind = Literal["nearest_neighbour", "interpolated"]
 
 LOG_2PI = math.log(2.0 * math.pi)
 # Below this map size "auto" takes brute force without timing the tree (see docs/results.md).
@@ -444,6 +447,11 @@ class PoseMixture:
             tt = t[:, fin] - top[fin]
             lp[fin] = np.log(np.exp(tt).sum(axis=0)) + top[fin]
         return lp + self.log_scale
+
+    def proposal_log_pdf(self, poses: ArrayLike) -> FloatArray:
+        """Log density (M,) at poses (M, 3) of the distribution :meth:`sample` draws from:
+        ``log_pdf - log_scale`` (the mixture itself, normalized)."""
+        return self.log_pdf(poses) - self.log_scale
 
     def pdf(self, poses: ArrayLike) -> FloatArray:
         """Density at poses (M, 3) -> (M,), consistent with ``sample`` when log_scale == 0."""

@@ -44,11 +44,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from lino_loc.active_vision import (
-    ActionEvaluator,
     ActivePolicy,
     ActiveVisionConfig,
     Decision,
     HeadSettle,
+    action_evaluator,
 )
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
@@ -117,7 +117,7 @@ def make_active_policy(
     ValueError when the pan range does not overlap the head's limits."""
     av = settings.method_config(enabled=True)
     model = localizer.sensor_model("intensity")
-    return ActivePolicy(ActionEvaluator(model, av), av, head_limits=head_limits)
+    return ActivePolicy(action_evaluator(model, av), av, head_limits=head_limits)
 
 
 class ActiveHead:

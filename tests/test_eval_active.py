@@ -88,7 +88,7 @@ def test_plain_map_has_one_entry_per_image(capsys: pytest.CaptureFixture[str]) -
 
 
 @pytest.mark.parametrize("bad", [["--positions", "0"], ["--scene-changes", "no_such_change"],
-                                 ["--virtual-headings", "0"]])
+                                 ["--virtual-headings", "0"], ["--residual-scale", "0"]])
 def test_bad_arguments_exit_2(bad: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "active", *TINY, *bad]) == 2
     err = capsys.readouterr().err
@@ -117,3 +117,14 @@ def test_the_disparity_channel_is_fused_into_the_filter(capsys: pytest.CaptureFi
     assert res["setup"]["channels"] == ["intensity", "disparity"]
     for strat in res["strategies"].values():
         assert all(math.isfinite(v) for v in strat["mean_error_m"])
+
+
+def test_the_interpolated_sensor_model_runs_the_experiment(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--sensor-model interpolated``: the filter and H(u) with lino_loc.interpolated_appearance,
+    also with both channels fused; the setup reports it."""
+    assert main(["eval", "active", "--json", *TINY, "--movements", "1", "--sensor-model", "interpolated",
+                 "--channels", "intensity,disparity"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["setup"]["sensor_model"] == "interpolated" and res["setup"]["residual_scale"] == 1.0
+    for s in res["strategies"].values():
+        assert len(s["success"]) == 2 and all(0.0 <= v <= 1.0 for v in s["success"])

@@ -97,6 +97,15 @@ def test_global_eval_lists_have_one_value_per_update_and_are_bounded(office_map)
     diag = math.hypot(8.0 + 1.0, 2.5 + 1.0)  # mapped area plus the sensor model's margin
     assert all(0.0 <= v <= diag for v in res["mean_error_m"] + res["median_error_m"])
     assert res["map_entries"] == len(office_map)
+    assert res["sensor_model"] == "nearest_neighbour"
+
+
+def test_global_eval_with_the_interpolated_sensor_model(office_map) -> None:
+    setup = global_loc.GlobalSetup(starts=2, updates=3, particles=200, workers=1, step=1.5,
+                                   heading_step_deg=45.0, sensor_model="interpolated", **SMALL)
+    res = global_loc.run(setup, LocalizerConfig(), appearance_map=office_map)
+    assert res["sensor_model"] == "interpolated" and len(res["success"]) == 3
+    assert all(0.0 <= v <= 1.0 for v in res["success"])
 
 
 def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:

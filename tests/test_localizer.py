@@ -267,3 +267,29 @@ def test_both_channels_are_tested_and_a_disparity_that_points_elsewhere_is_lost(
     assert states[29] == "tracking" and quality[29] > 0.5
     assert "lost" in states[30:45], states[30:]
     assert min(quality[30:45]) < 0.3
+
+
+@pytest.mark.parametrize("channels", [False, True])
+def test_the_interpolated_sensor_model_tracks_a_drive(channels: bool) -> None:
+    """``sensor_model = "interpolated"``: the filter (global seed, tracking) runs on the
+    interpolated likelihood, alone and with both channels fused (eq. 8); the active-vision
+    evaluator of the service is the interpolated one."""
+    from lino_loc.active_vision import InterpolatedActionEvaluator, action_evaluator
+    from lino_loc.interpolated_appearance import InterpolatedLikelihood, InterpolatedSensorModel
+
+    m, f_img, f_disp = _world(with_disparity=channels)
+    cfg = _config().model_copy(update={"sensor_model": "interpolated"})
+    loc = Localizer(m, cfg)
+    assert isinstance(loc.sensor_model(), InterpolatedSensorModel)
+    assert isinstance(action_evaluator(loc.sensor_model()), InterpolatedActionEvaluator)
+    cam = np.array([2.0, 1.5, 0.5])
+    assert isinstance(loc.observe(f_img(cam)[0], f_disp(cam)[0] if channels else None), InterpolatedLikelihood)
+    est, truth = _run(loc, f_img, f_disp if channels else None)
+    assert np.hypot(*(est.pose[:2] - truth[:2])) < 0.5
+    assert abs(wrap_angle(est.pose[2] - truth[2])) < 0.2
+
+
+def test_the_default_sensor_model_is_the_nearest_neighbour_one() -> None:
+    assert LocalizerConfig().sensor_model == "nearest_neighbour"
+    with pytest.raises(ValidationError):
+        LocalizerConfig(sensor_model="nearest")

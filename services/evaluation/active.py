@@ -43,10 +43,11 @@ from typing import Any
 import numpy as np
 
 from drivers.sim.world import World, grid_poses, load_world
-from lino_loc.active_vision import ActionEvaluator, belief_entropy
+from lino_loc.active_vision import ActionEvaluator, action_evaluator, belief_entropy
 from lino_loc.appearance_map import channel_margin
 from lino_loc.errors import LinoLocError
 from lino_loc.fusion import fuse
+from lino_loc.interpolated_appearance import InterpolatedSensorModel, fuse_likelihoods
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter
@@ -143,21 +144,21 @@ def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarr
     views with the intensity channel alone)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     world = load_world(setup.world)
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
-    model_d = None if disparity_features is None else NearestNeighbourSensorModel(
-        entries, disparity_features, setup.sensor, bounds=model.bounds)
+    model = setup.sensor_model_for(entries, map_features)
+    model_d = None if disparity_features is None else setup.sensor_model_for(entries, disparity_features, model.bounds)
     _ctx.update(setup=setup, world=world, model=model, model_d=model_d,
-                evaluator=ActionEvaluator(model, setup.active), map_poses=map_poses)
+                evaluator=action_evaluator(model, setup.active), map_poses=map_poses)
 
 
 def _observe(fi: np.ndarray, fd: np.ndarray | None) -> Any:
     """The sensor-model mixture of a view: intensity alone, or fused with its disparity."""
-    model: NearestNeighbourSensorModel = _ctx["model"]
-    model_d: NearestNeighbourSensorModel | None = _ctx["model_d"]
+    model = _ctx["model"]
+    model_d = _ctx["model_d"]
     if model_d is None or fd is None or not np.all(np.isfinite(fd)):
         return model.observe(fi)
     fc = _ctx["setup"].fusion
-    return fuse({"intensity": model.observe(fi, fc.j_intensity), "disparity": model_d.observe(fd, fc.j_disparity)}, fc)
+    obs = {"intensity": model.observe(fi, fc.j_intensity), "disparity": model_d.observe(fd, fc.j_disparity)}
+    return fuse_likelihoods(obs, fc) if isinstance(model, InterpolatedSensorModel) else fuse(obs, fc)
 
 
 def roughen(pf: AuxiliaryParticleFilter, setup: ActiveSetup, mixture: Any = None, pan: float = 0.0) -> None:
@@ -187,7 +188,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
     pos, truth, feats, dfeats = args
     setup: ActiveSetup = _ctx["setup"]
     world: World = _ctx["world"]
-    model: NearestNeighbourSensorModel = _ctx["model"]
+    model: NearestNeighbourSensorModel | InterpolatedSensorModel = _ctx["model"]
     ev: ActionEvaluator = _ctx["evaluator"]
     pans = setup.active.actions()
     n_a = pans.size

@@ -54,8 +54,9 @@ def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map
                   pans: np.ndarray, feats: np.ndarray, images: tuple[int, ...] = (1, 2, 4, 11)) -> dict[str, float]:
     """Upper bound of the sensor model, without particles: the posterior of the first k images
     (first pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped
-    area + 30 cm), its maximum as the estimate; success ratio over the test positions."""
-    model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
+    area + 30 cm), its maximum as the estimate; success ratio over the test positions. The
+    sensor model is the one ``setup.sensor_model`` names."""
+    model = setup.sensor_model_for(entries, map_features)
     xmin, xmax = grid[:, 0].min() - 0.3, grid[:, 0].max() + 0.3
     ymin, ymax = grid[:, 1].min() - 0.3, grid[:, 1].max() + 0.3
     gx, gy, gh = np.meshgrid(np.arange(xmin, xmax + 1e-9, 0.1), np.arange(ymin, ymax + 1e-9, 0.1),

@@ -17,9 +17,10 @@ from typing import Any
 
 from lino_loc.active_vision import ActiveVisionConfig
 from lino_loc.fusion import FusionConfig
+from lino_loc.interpolated_appearance import InterpolatedSensorModel, InterpolationConfig
 from lino_loc.motion_model import MotionModelConfig
 from lino_loc.particle_filter import FilterConfig
-from lino_loc.sensor_model import SensorModelConfig
+from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig, SensorModelKind
 
 STRATEGIES: tuple[str, ...] = ("entropy", "random", "sweep")
 
@@ -50,6 +51,8 @@ class ActiveSetup:
     features: int = 5
     preprocess: str = "none"
     sensor: SensorModelConfig = field(default_factory=paper_sensor_model)
+    sensor_model: SensorModelKind = "nearest_neighbour"  # or "interpolated" (lino_loc.interpolated_appearance)
+    interpolation: InterpolationConfig = field(default_factory=InterpolationConfig)
     particles: int = 150
     roughen_xy: float = 0.0
     roughen_theta: float = 0.0
@@ -74,6 +77,13 @@ class ActiveSetup:
     channels: tuple[str, ...] = ("intensity",)  # with "disparity": the filter fuses both (eq. 8)
     fusion: FusionConfig = field(default_factory=FusionConfig)
 
+    def sensor_model_for(self, entries: Any, features: Any, bounds: Any = None) -> Any:
+        """The sensor model :attr:`sensor_model` names over one channel's map features
+        (``NearestNeighbourSensorModel`` or ``InterpolatedSensorModel``)."""
+        if self.sensor_model == "interpolated":
+            return InterpolatedSensorModel(entries, features, self.sensor, self.interpolation, bounds=bounds)
+        return NearestNeighbourSensorModel(entries, features, self.sensor, bounds=bounds)
+
     def filter_config(self) -> FilterConfig:
         return FilterConfig(n_particles=self.particles, **self.filter)
 
@@ -84,7 +94,8 @@ class ActiveSetup:
         """The result's ``setup`` object: the experiment's settings with the sensor-model and
         action-evaluation settings it varies inlined (``j``, ``sigma_xy``, ``sigma_theta``,
         ``outlier_weight``; ``eval_particles`` = max_particles, ``n_actions``,
-        ``predicted_neighbours``, ``pan_min``, ``pan_max``), tuples as lists; without the
+        ``predicted_neighbours``, ``pan_min``, ``pan_max``; ``sensor_model`` and ``residual_scale``
+        at the end, only for the interpolated sensor model), tuples as lists; without the
         settings that do not change the figures (workers, snapshots, ideal)."""
         s, a = self.sensor, self.active
         out: dict[str, Any] = {
@@ -101,4 +112,6 @@ class ActiveSetup:
             "seed": self.seed, "strategies": self.strategies, "filter": dict(self.filter),
             "motion": dict(self.motion), "channels": list(self.channels),
         }
+        if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was
+            out.update(sensor_model=self.sensor_model, residual_scale=self.interpolation.residual_scale)
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in out.items()}

@@ -54,6 +54,7 @@ class GlobalSetup:
     rate: float = 2.0
     particles: int | None = None  # None: the LocalizerConfig's
     j: int | None = None  # None: the LocalizerConfig's
+    sensor_model: str | None = None  # None: the LocalizerConfig's ("nearest_neighbour" / "interpolated")
     width: int = 320
     height: int = 240
     size: tuple[int, int] = (80, 60)
@@ -65,12 +66,15 @@ class GlobalSetup:
 
 
 def localizer_config(setup: Any, base: LocalizerConfig | None) -> LocalizerConfig:
-    """``base`` (or the defaults) with the setup's particle count and J where it sets them."""
+    """``base`` (or the defaults) with the setup's particle count, J and sensor model where it
+    sets them."""
     cfg = (base or LocalizerConfig()).model_copy(deep=True)
     if setup.particles is not None:
         cfg.filter.n_particles = int(setup.particles)
     if setup.j is not None:
         cfg.sensor.j = int(setup.j)
+    if getattr(setup, "sensor_model", None) is not None:
+        cfg = LocalizerConfig.model_validate({**cfg.model_dump(), "sensor_model": setup.sensor_model})
     return cfg
 
 
@@ -144,6 +148,7 @@ def run(
         "channels": list(setup.channels),
         "particles": int(cfg.filter.n_particles),
         "J": int(cfg.sensor.j),
+        "sensor_model": cfg.sensor_model,
         "lighting": setup.lighting,
         "mean_error_m": [float(v) for v in err.mean(axis=0)],
         "median_error_m": [float(v) for v in np.median(err, axis=0)],

@@ -8,6 +8,7 @@ import logging
 import math
 
 from lino_loc.errors import LinoLocError
+from lino_loc.interpolated_appearance import InterpolationConfig
 from services.evaluation.active import plot, run
 from services.evaluation.active_setup import (
     STRATEGIES,
@@ -68,10 +69,13 @@ def _run(args: argparse.Namespace) -> int:
                         ("--virtual-headings", args.virtual_headings)):
         if value < 1:
             raise LinoLocError(f"{name} must be at least 1 (got {value})")
+    if not args.residual_scale > 0.0:
+        raise LinoLocError(f"--residual-scale must be positive (got {args.residual_scale})")
     setup = ActiveSetup(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
                         particles=args.particles, scene_changes=changes,
                         seed=args.seed, workers=args.workers, features=args.features,
-                        sensor=paper_sensor_model(j=args.j),
+                        sensor=paper_sensor_model(j=args.j), sensor_model=args.sensor_model,
+                        interpolation=InterpolationConfig(residual_scale=args.residual_scale),
                         active=paper_active_vision(n_actions=args.actions, max_particles=args.eval_particles,
                                                    predicted_neighbours=args.predicted),
                         step=args.step, heading_step_deg=args.heading_step, inject=args.inject,
@@ -130,6 +134,11 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preprocess", choices=("none", "histeq", "gradient"), default="none",
                    help="image preprocessing before PCA (default none: section 6.1 names none)")
     p.add_argument("--j", type=int, default=10, help="nearest neighbours of the sensor model")
+    p.add_argument("--sensor-model", choices=("nearest_neighbour", "interpolated"), default="nearest_neighbour",
+                   help="p(y | x): the J nearest map entries (default, section 3) or the map's appearance "
+                   "interpolated between survey poses (lino_loc.interpolated_appearance)")
+    p.add_argument("--residual-scale", type=float, default=1.0,
+                   help="interpolated sensor model: scale of the leave-one-out residuals (default 1)")
     p.add_argument("--scene-changes", default="",
                    help="also run with these scene changes of the world (comma-separated, or 'all')")
     p.add_argument("--channels", default="intensity",

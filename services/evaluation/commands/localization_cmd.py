@@ -78,7 +78,7 @@ def _global(args: argparse.Namespace) -> int:
     setup = GlobalSetup(world=args.world, features=args.features, preprocess=args.preprocess,
                         starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
                         j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
-                        channels=parse_channels(args.channels))
+                        channels=parse_channels(args.channels), sensor_model=args.sensor_model)
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), progress=cb)  # type: ignore[arg-type]
     bar.close()
@@ -195,6 +195,9 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preprocess", default="none", choices=PREPROCESS_METHODS)
     p.add_argument("--particles", type=int, default=None, help="default: the localizer configuration's")
     p.add_argument("--j", type=int, default=None, help="nearest map entries J (default: configuration's)")
+    p.add_argument("--sensor-model", choices=("nearest_neighbour", "interpolated"), default=None,
+                   help="p(y | x) (default: the configuration's, nearest_neighbour; interpolated: "
+                   "lino_loc.interpolated_appearance)")
     p.add_argument("--virtual-headings", type=int, default=5, choices=range(1, 32), metavar="N",
                    help="map entries per survey image, turned 3 deg apart (lino_loc.virtual_views), as "
                    "config/sim.toml's map; 1: the images alone (default 5)")
