@@ -30,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,12 +51,13 @@ def product_map_cache(width: int = 320, height: int = 240) -> Path:
     return MAP_CACHE.with_name(f"office-{width}x{height}-75cm-15deg-5f-v5-disparity.npz")
 
 
-#: ``config/sim.toml``'s ``[map.build]`` (the simulated service's map), images at the camera's size.
-PRODUCT_MAP_BUILD = """step = 0.75
-heading_step_deg = 15.0
-features = 5
-virtual_headings = 5
-disparity = true"""
+def _product_map_build() -> str:
+    """``config/sim.toml``'s ``[map.build]`` (the simulated service's map) as TOML lines, read
+    from the file so that the benchmarks follow it; ``world``, ``width`` and ``height`` are the
+    rig's own."""
+    with (ROOT / "config" / "sim.toml").open("rb") as f:
+        build = tomllib.load(f)["map"]["build"]
+    return "\n".join(f"{k} = {json.dumps(v)}" for k, v in build.items() if k not in ("world", "width", "height"))
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 _PORTS = random.Random(os.getpid())
 
@@ -96,7 +98,7 @@ class Settings:
 
 def _map_section(s: Settings) -> str:
     path = product_map_cache(s.width, s.height) if s.product_map else map_cache(s.width, s.height)
-    build = PRODUCT_MAP_BUILD if s.product_map else "step = 0.5\nheading_step_deg = 15.0\nfeatures = 5"
+    build = _product_map_build() if s.product_map else "step = 0.5\nheading_step_deg = 15.0\nfeatures = 5"
     return f"""[map]
 path = "{path}"
 [map.build]
