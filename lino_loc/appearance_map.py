@@ -624,6 +624,22 @@ def load_vectors(
             X[i] = to_vector(preprocess(img, method), (w, h))
         return hi - lo
 
+    _in_chunks(n, work, workers=workers, progress=progress, chunk=chunk)
+    return X
+
+
+def _in_chunks(
+    n: int,
+    work: Callable[[int, int], int],
+    *,
+    workers: int | None,
+    progress: ProgressFn | None,
+    chunk: int = 64,
+) -> None:
+    """Run ``work(lo, hi)`` (which returns the rows it did) over ``range(n)`` in chunks of
+    ``chunk`` rows, on a thread pool (default 4 threads, at most 2 per core; ``workers`` <= 1
+    or a single chunk: none). ``progress(done, n)`` after every chunk, in order. An exception
+    in a worker cancels the chunks not yet started and is re-raised."""
     bounds = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     nw = workers if workers is not None else min(4, 2 * (os.cpu_count() or 1))
     done = 0
@@ -632,7 +648,7 @@ def load_vectors(
             done += work(lo, hi)
             if progress:
                 progress(done, n)
-        return X
+        return
     with ThreadPoolExecutor(max_workers=nw) as pool:
         futures = [pool.submit(work, lo, hi) for lo, hi in bounds]
         try:
@@ -644,7 +660,6 @@ def load_vectors(
             for f in futures:
                 f.cancel()
             raise
-    return X
 
 
 def _project_rows(pca: PCA, X: np.ndarray, block: int = 1024) -> tuple[np.ndarray, float]:
@@ -738,30 +753,45 @@ def disparity_source(dataset: Dataset) -> tuple[str, str]:
     raise LinoLocError(f"{dataset.root}: no disparity or depth in this dataset: cannot build a disparity channel")
 
 
+def map_file_columns(dataset: Dataset, channels: Sequence[str]) -> tuple[str, ...]:
+    """The dataset's file columns :func:`build_map` reads for ``channels``: ``image``, and
+    for the disparity channel the ``disparity`` column, else ``depth`` (:func:`disparity_source`).
+    What ``lino-loc map build`` checks before it builds (the right images are not read)."""
+    cols: tuple[str, ...] = ("image",)
+    if "disparity" in channels:
+        cols += ("disparity",) if dataset.has_disparity else ("depth",) if dataset.has_depth else ()
+    return cols
+
+
 def _disparity_rows(dataset: Dataset, size: tuple[int, int], min_valid_fraction: float,
-                    progress: ProgressFn | None) -> np.ndarray:
+                    progress: ProgressFn | None, workers: int | None = None, chunk: int = 64) -> np.ndarray:
     """(N, w*h) float32 NaN-aware area averages of every row's disparity (NaN = no value):
-    the ``disparity`` column if the dataset has one, else disparity from ``depth``."""
+    the ``disparity`` column if the dataset has one, else disparity from ``depth``. Decoded
+    by a thread pool in chunks of ``chunk`` rows as :func:`load_vectors` does (``workers``)."""
     from lino_loc.disparity import depth_to_disparity, depth_to_inverse_depth, downsample_sparse
 
     n = len(dataset)
     w, h = size
     cam = dataset.meta.camera
     X = np.full((n, w * h), np.nan, dtype=np.float32)
-    for i in range(n):
-        disp = dataset.disparity(i) if dataset.has_disparity else None
-        if disp is None and not dataset.has_disparity:
-            depth = dataset.depth(i)
-            if depth is not None:
-                disp = (
-                    depth_to_disparity(depth, cam.fx, cam.baseline_m)
-                    if cam.baseline_m
-                    else depth_to_inverse_depth(depth)
-                )
-        if disp is not None:
-            X[i] = downsample_sparse(disp, (w, h), min_valid_fraction=min_valid_fraction).reshape(-1)
-        if progress and ((i + 1) % 64 == 0 or i + 1 == n):
-            progress(i + 1, n)
+    from_column = dataset.has_disparity
+
+    def row(i: int) -> np.ndarray | None:
+        if from_column:
+            return dataset.disparity(i)
+        depth = dataset.depth(i)
+        if depth is None:
+            return None
+        return depth_to_disparity(depth, cam.fx, cam.baseline_m) if cam.baseline_m else depth_to_inverse_depth(depth)
+
+    def work(lo: int, hi: int) -> int:
+        for i in range(lo, hi):
+            disp = row(i)
+            if disp is not None:
+                X[i] = downsample_sparse(disp, (w, h), min_valid_fraction=min_valid_fraction).reshape(-1)
+        return hi - lo
+
+    _in_chunks(n, work, workers=workers, progress=progress, chunk=chunk)
     return X
 
 
@@ -775,6 +805,7 @@ def build_disparity_channel(
     seed: int = 0,
     max_iter: int = 100,
     virtual: VirtualHeadings | None = None,
+    workers: int | None = None,
 ) -> ChannelMap:
     """The disparity channel (section 5): sparse disparity per image (the ``disparity``
     column, or ``depth`` by f*B/Z, or inverse depth without a baseline: see
@@ -782,7 +813,7 @@ def build_disparity_channel(
     area-average, then :func:`disparity_channel_from_vectors`."""
     w, h = int(size[0]), int(size[1])
     source, units = disparity_source(dataset)
-    X = _disparity_rows(dataset, (w, h), min_valid_fraction, progress)
+    X = _disparity_rows(dataset, (w, h), min_valid_fraction, progress, workers)
     return disparity_channel_from_vectors(X, (w, h), n_features, units=units, source=source,
                                           min_valid_fraction=min_valid_fraction, seed=seed, max_iter=max_iter,
                                           virtual=virtual)
@@ -868,7 +899,8 @@ def build_map(
         )
     }
     if "disparity" in channels:
-        chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed, virtual=virtual)
+        chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed, virtual=virtual,
+                                                     workers=workers)
     return AppearanceMap(
         poses=ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual.offsets),
         channels=chans,

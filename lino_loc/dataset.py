@@ -357,6 +357,7 @@ class Dataset:
         self.stamps = stamps
         self.lines = list(range(2, 2 + len(poses))) if lines is None else lines
         self._files = files
+        self._present = frozenset(k for k, v in files.items() if any(f is not None for f in v))
 
     # ----------------------------------------------------------------- opening
     @classmethod
@@ -446,15 +447,15 @@ class Dataset:
 
     @property
     def has_right(self) -> bool:
-        return any(f is not None for f in self._files["right"])
+        return "right" in self._present
 
     @property
     def has_disparity(self) -> bool:
-        return any(f is not None for f in self._files["disparity"])
+        return "disparity" in self._present
 
     @property
     def has_depth(self) -> bool:
-        return any(f is not None for f in self._files["depth"])
+        return "depth" in self._present
 
     def image_path(self, i: int) -> Path:
         """Path of image ``i`` (for bulk loaders)."""
@@ -605,10 +606,10 @@ def _file_problem(path: Path, kind: str, camera: CameraInfo) -> str | None:
     return None
 
 
-def _row_file_problems(ds: Dataset, i: int) -> list[str]:
-    """The problems of row ``i``'s files, one line each naming the file and the row."""
+def _row_file_problems(ds: Dataset, i: int, columns: Sequence[str] = _FILE_COLUMNS) -> list[str]:
+    """The problems of row ``i``'s files in ``columns``, one line each naming the file and the row."""
     out = []
-    for kind in _FILE_COLUMNS:
+    for kind in columns:
         path = ds.file_path(kind, i)
         if path is None:
             continue
@@ -623,6 +624,7 @@ def dataset_problems(
     *,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    columns: Sequence[str] = _FILE_COLUMNS,
 ) -> list[str]:
     """Every content problem of the opened dataset ``ds``, one line each; [] if none.
 
@@ -633,8 +635,13 @@ def dataset_problems(
     pool (OpenCV releases the GIL; default 4 threads, at most 2 per core; ``workers`` <= 1:
     none). ``progress(done, total)`` is called as rows are checked. Lines name the file, the
     line of ``poses.csv`` and the field. ``lino-loc dataset check`` and ``lino-loc map
-    build`` both use this (through :func:`require_valid`).
+    build`` both use this (through :func:`require_valid`). ``columns``: the file columns to
+    decode (default all of ``image``, ``right``, ``disparity``, ``depth``; ``map build``
+    decodes only those it reads); ValueError for a name that is not a file column.
     """
+    unknown = [c for c in columns if c not in _FILE_COLUMNS]
+    if unknown:
+        raise ValueError(f"not file columns of a dataset: {unknown} (expected some of {list(_FILE_COLUMNS)})")
     table = ds.root / POSES_FILE
     problems = []
     plausible = np.ones(len(ds), dtype=bool)
@@ -650,7 +657,7 @@ def dataset_problems(
     bounds = [(lo, min(lo + 64, n)) for lo in range(0, n, 64)]
 
     def work(lo: int, hi: int) -> list[str]:
-        return [line for i in range(lo, hi) for line in _row_file_problems(ds, i)]
+        return [line for i in range(lo, hi) for line in _row_file_problems(ds, i, columns)]
 
     nw = workers if workers is not None else min(4, 2 * (os.cpu_count() or 1))
     pool = ThreadPoolExecutor(max_workers=nw) if nw > 1 and len(bounds) > 1 else None
@@ -667,12 +674,16 @@ def dataset_problems(
 
 
 def require_valid(
-    ds: Dataset, *, workers: int | None = None, progress: Callable[[int, int], None] | None = None
+    ds: Dataset,
+    *,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    columns: Sequence[str] = _FILE_COLUMNS,
 ) -> None:
-    """Raise :class:`LinoLocError` with the first of :func:`dataset_problems` (and how many
-    more there are) if there is any; the refusal ``lino-loc map build`` shares with
-    ``lino-loc dataset check``."""
-    problems = dataset_problems(ds, workers=workers, progress=progress)
+    """Raise :class:`LinoLocError` with the first of :func:`dataset_problems` (over the file
+    ``columns``) and how many more there are, if there is any; the refusal ``lino-loc map
+    build`` shares with ``lino-loc dataset check``."""
+    problems = dataset_problems(ds, workers=workers, progress=progress, columns=columns)
     if problems:
         more = (
             f" (and {len(problems) - 1} more; see `lino-loc dataset check {ds.root}`)"

@@ -140,6 +140,12 @@ def test_disparity_channel_round_trip(dataset: Dataset, tmp_path: Path) -> None:
     np.testing.assert_allclose(disp.project(query), disp.features[3], rtol=1e-3, atol=1e-3)
     # A map with no stereo match at all observes nothing: NaN features, not the prior mean.
     assert np.all(np.isnan(disp.project(np.full_like(query, np.nan))))
+    # the disparity rows are read by a thread pool in chunks; without one they are the same
+    from lino_loc.appearance_map import _disparity_rows
+
+    pooled = _disparity_rows(dataset, SIZE, 0.25, None, workers=3, chunk=7)
+    np.testing.assert_array_equal(pooled, _disparity_rows(dataset, SIZE, 0.25, None, workers=1))
+    assert np.isnan(pooled).any() and np.isfinite(pooled).any()
 
 
 # ----------------------------------------------------------------- bad files

@@ -200,3 +200,38 @@ def test_disparity_channel_info_names_its_source_and_the_em(tmp_path: Path, caps
     code, out, err = _run(capsys, "map", "info", str(old))
     assert code == 0, err
     assert "disparity: 3 features" in out and "EM " not in out and "source" not in out
+
+
+def test_build_checks_only_the_files_it_reads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`map build` decodes the images and, for the disparity channel, the disparity column
+    before it builds; a broken right image (which no channel reads) does not stop it, a broken
+    disparity file does, and `dataset check` still reports both."""
+    rng = np.random.default_rng(2)
+    cam = CameraInfo(width=24, height=18, fx=20.0, fy=20.0, cx=12.0, cy=9.0, baseline_m=0.075)
+    root = tmp_path / "stereo"
+    with DatasetWriter(root, DatasetMeta(name="st", camera=cam)) as w:
+        for i in range(12):
+            disp = rng.uniform(2.0, 20.0, (18, 24))
+            disp[rng.random((18, 24)) < 0.5] = np.nan
+            img = rng.integers(0, 256, (18, 24), dtype=np.uint8)
+            w.add(img, (0.5 * i, 0.0, 0.0), disparity=disp, right=img)
+    (root / "images_right" / "000003.png").write_bytes(b"not a png")
+    code, _, err = _run(capsys, "map", "build", str(root), "--out", str(tmp_path / "a.npz"), "--features", "3",
+                        "--size", "12x9", "--channels", "intensity,disparity")
+    assert code == 0, err
+    (root / "disparity" / "000004.png").write_bytes(b"not a png")
+    code, out, err = _run(capsys, "map", "build", str(root), "--out", str(tmp_path / "b.npz"), "--features", "3",
+                          "--size", "12x9", "--channels", "intensity,disparity")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "000004.png: poses.csv line 6, field 'disparity': cannot be decoded" in err
+    assert "(and" not in err  # the right image is not one of its problems
+    # intensity alone reads no disparity file
+    code, _, err = _run(capsys, "map", "build", str(root), "--out", str(tmp_path / "c.npz"), "--features", "3",
+                        "--size", "12x9")
+    assert code == 0, err
+    from lino_loc.dataset import Dataset, dataset_problems
+
+    problems = dataset_problems(Dataset.open(root))
+    assert [p.split("field ")[1].split(":")[0] for p in problems] == ["'right'", "'disparity'"]
+    with pytest.raises(ValueError, match="not file columns"):
+        dataset_problems(Dataset.open(root), columns=("images",))

@@ -8,7 +8,9 @@
 
 A malformed dataset folder or a bad map file is a user error: one line on stderr, exit 2.
 ``map build`` refuses what ``lino-loc dataset check`` refuses (the same
-:func:`lino_loc.dataset.require_valid`, run before any PCA): the first problem, and how many
+:func:`lino_loc.dataset.require_valid`, run before any PCA) in the files it reads
+(:func:`lino_loc.appearance_map.map_file_columns`: the images, and the disparity or depth
+column for the disparity channel; not the right images): the first problem, and how many
 more there are.
 """
 
@@ -21,7 +23,13 @@ import math
 import sys
 import time
 
-from lino_loc.appearance_map import DEFAULT_FEATURES, DEFAULT_SIZE, AppearanceMap, build_map
+from lino_loc.appearance_map import (
+    DEFAULT_FEATURES,
+    DEFAULT_SIZE,
+    AppearanceMap,
+    build_map,
+    map_file_columns,
+)
 from lino_loc.dataset import Dataset, require_valid
 from lino_loc.pca import PCA_METHODS
 from lino_loc.preprocessing import PREPROCESS_METHODS
@@ -64,7 +72,7 @@ def _build(args: argparse.Namespace) -> int:
     virtual = None if args.virtual_headings == 1 else offsets(math.radians(args.virtual_step), args.virtual_headings)
     bar = Progress("dataset check")
     try:
-        require_valid(ds, progress=bar.update)
+        require_valid(ds, progress=bar.update, columns=map_file_columns(ds, args.channels))
     finally:
         bar.close()
     bar = Progress("map build")
