@@ -119,16 +119,20 @@ def test_plots_are_written(tiny_run: tuple[dict, object]) -> None:
         assert f.is_file() and f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_test_positions_are_free_and_off_the_grid() -> None:
+@pytest.mark.parametrize("world_name", ["office", "lab", "corridor"])
+def test_test_positions_are_free_and_off_the_grid(world_name: str) -> None:
+    """The default 50 test positions: distinct, free (also with all the world's scene
+    changes), at least min_grid_distance from every grid position."""
     from drivers.sim.world import grid_poses, load_world
 
-    world = load_world("office")
-    setup = ActiveSetup(positions=15, scene_changes=("boxes",))
+    world = load_world(world_name)
+    setup = ActiveSetup(world=world_name, scene_changes=world.scene_change_names)
     grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
     t = place_test_positions(world, setup, grid)
-    assert t.shape == (15, 3)
+    assert t.shape == (50, 3) and setup.positions == 50
+    assert np.unique(np.round(t[:, :2], 3), axis=0).shape[0] == 50
     assert world.is_free(t[:, 0], t[:, 1]).all()
-    assert world.is_free(t[:, 0], t[:, 1], scene_changes=("boxes",)).all()
+    assert world.is_free(t[:, 0], t[:, 1], scene_changes=setup.scene_changes).all()
     d = np.hypot(t[:, None, 0] - grid[None, :, 0], t[:, None, 1] - grid[None, :, 1]).min(axis=1)
     assert (d >= setup.min_grid_distance).all()
 
