@@ -454,8 +454,8 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
 
 
 def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[str]:
-    """Fig. 3 (error and success against movements, all strategies, std bands) per scene
-    condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
+    """Fig. 3 (error and success against movements, all strategies, std bands on the error,
+    95 % interval bands on the success) per scene condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
     from services.evaluation.plotting import pyplot
 
     plt = pyplot()
@@ -476,13 +476,16 @@ def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[s
             ax.plot(x, m, "o-", color=colours.get(s), label=s)
             ax.fill_between(x, np.maximum(m - sd, 0), m + sd, color=colours.get(s), alpha=0.15)
             ax2.plot(x, 100 * np.asarray(r["success"]), "o-", color=colours.get(s), label=s)
+            if "success_ci95" in r:
+                ci = 100 * np.asarray(r["success_ci95"])
+                ax2.fill_between(x, ci[:, 0], ci[:, 1], color=colours.get(s), alpha=0.12)
         ax.set_title(f"scene changes: {name}" if name != "none" else "as mapped")
         ax.set_xlabel("camera movements")
         ax.set_ylabel("position error (m), mean +- std")
         ax.legend()
         ax2.axhline(95, color="0.5", ls=":")
         ax2.set_xlabel("camera movements")
-        ax2.set_ylabel("success (%), section 6.1")
+        ax2.set_ylabel("success (%), section 6.1, 95 % interval")
         ax2.set_ylim(0, 102)
         ax2.legend()
     fig.suptitle(f"Active localization, {result['positions']} positions x {result['runs']} runs (Fig. 3)")
