@@ -21,8 +21,13 @@ zero, the pan known). After 0..movements movements the position error of the est
 success of section 6.1 are recorded: ``success`` (:func:`lino_loc.metrics.success`, the
 paper's words: the map position nearest to the estimated position is the one nearest to the
 true position) and, beside it, the stricter ``success_pose``
-(:func:`lino_loc.metrics.success_pose`: the same (x, y, theta) map cell, 75 cm / 15 deg). Every run (position x run) starts from the same particles and first pan for all
-three strategies (seeded by (seed, position, run)).
+(:func:`lino_loc.metrics.success_pose`: the same (x, y, theta) map cell, 75 cm / 15 deg).
+Every run (position x run) starts from the same particles and first pan for all three
+strategies (seeded by (seed, position, run)), so the strategies' differences are paired.
+
+Every success ratio carries its 95 % interval and every difference entropy - other strategy
+its standard error, from the two-stage bootstrap over positions then runs of
+:mod:`services.evaluation.active_stats`.
 
 Views are rendered once per test position for all candidate pans (the process pool of
 :mod:`services.evaluation.views`) and reused across runs and strategies. With scene changes
@@ -54,7 +59,8 @@ from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel
 from lino_loc.virtual_views import crop_columns
-from services.evaluation.active_bounds import feature_diagnostics, ideal_success, map_oracle_success
+from services.evaluation import active_stats
+from services.evaluation.active_bounds import feature_diagnostics, ideal_hits, map_oracle_hits
 from services.evaluation.active_setup import ActiveSetup
 from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
 
@@ -269,23 +275,50 @@ def grid_distance(truths: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return np.min(np.hypot(truths[:, None, 0] - g[None, :, 0], truths[:, None, 1] - g[None, :, 1]), axis=1)
 
 
+def outcomes(parts: list[dict[str, Any]], strategy: str, key: str = "success") -> np.ndarray:
+    """The 0/1 outcomes (P, R, moves + 1) of one strategy over the test positions ``parts``."""
+    return np.stack([p["strategies"][strategy][key] for p in parts])
+
+
 def success_by_band(parts: list[dict[str, Any]], strategies: tuple[str, ...], dist: np.ndarray) -> dict[str, Any]:
-    """Success ratio after each movement per strategy, for the test positions in each band of
-    distance to the nearest map position (:data:`GRID_DISTANCE_BANDS`)."""
+    """Success ratio after each movement per strategy, and its 95 % interval (key
+    ``"<strategy>_ci95"``, :mod:`services.evaluation.active_stats` over the band's positions),
+    for the test positions in each band of distance to the nearest map position
+    (:data:`GRID_DISTANCE_BANDS`)."""
     out: dict[str, Any] = {}
     for lo, hi in GRID_DISTANCE_BANDS:
         sel = [p for p in parts if lo <= dist[p["pos"]] < hi]
         key = f"{lo:.2f}-{hi:.2f}" if math.isfinite(hi) else f"{lo:.2f}-"
         out[key] = {"positions": len(sel)}
+        if not sel:
+            continue
+        counts = active_stats.resample_counts(len(sel), sel[0]["strategies"][strategies[0]]["success"].shape[0])
         for s in strategies:
-            if sel:
-                suc = np.concatenate([p["strategies"][s]["success"] for p in sel])
-                out[key][s] = [float(v) for v in suc.mean(axis=0)]
+            suc = outcomes(sel, s)
+            out[key][s] = [float(v) for v in suc.mean(axis=(0, 1))]
+            out[key][f"{s}_ci95"] = active_stats.intervals_json(suc, counts)
+    return out
+
+
+def comparisons(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
+    """Paired differences of success, ``"entropy-<other>"`` for every other strategy, per
+    movement (:func:`services.evaluation.active_stats.paired_difference`: the runs of all
+    strategies start from the same particles and first pan)."""
+    if "entropy" not in strategies or not parts:
+        return {}
+    counts = active_stats.resample_counts(len(parts), parts[0]["strategies"]["entropy"]["success"].shape[0])
+    out: dict[str, Any] = {"se_method": active_stats.SE_METHOD}
+    for s in strategies:
+        if s != "entropy":
+            out[f"entropy-{s}"] = active_stats.paired_difference(outcomes(parts, "entropy"), outcomes(parts, s), counts)
     return out
 
 
 def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
+    """Per strategy the error statistics and success ratios after each movement, the success
+    ratios with their 95 % intervals (``success_ci95``, ``success_pose_ci95``, [lo, hi] per k)."""
     summary: dict[str, Any] = {}
+    counts = active_stats.resample_counts(len(parts), parts[0]["strategies"][strategies[0]]["success"].shape[0])
     for s in strategies:
         err = np.concatenate([p["strategies"][s]["error"] for p in parts])  # (P*R, moves+1)
         suc = np.concatenate([p["strategies"][s]["success"] for p in parts])
@@ -297,8 +330,10 @@ def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict
             "std_error_m": [float(v) for v in err.std(axis=0)],
             "median_error_m": [float(v) for v in np.median(err, axis=0)],
             "success": [float(v) for v in suc.mean(axis=0)],
+            "success_ci95": active_stats.intervals_json(outcomes(parts, s), counts),
             "positions_all_success": [int(v) for v in (per_pos >= 1.0).sum(axis=0)],
             "success_pose": [float(v) for v in suc_pose.mean(axis=0)],
+            "success_pose_ci95": active_stats.intervals_json(outcomes(parts, s, "success_pose"), counts),
             "median_heading_error_deg": [float(v) for v in np.degrees(np.median(herr, axis=0))],
         }
     return summary
@@ -332,6 +367,35 @@ def run_condition(
     return _summarize(parts, setup.strategies), parts
 
 
+def _hit_ratios(hits: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    """``{key: {"k": ratio}, key + "_ci95": {"k": [lo, hi]}}`` of per-position hits (P,) or
+    (P, R) (:mod:`services.evaluation.active_stats`)."""
+    out: dict[str, Any] = {key: {}, f"{key}_ci95": {}}
+    for k, v in hits.items():
+        h = np.asarray(v, dtype=np.float64).reshape(v.shape[0], -1)
+        counts = active_stats.resample_counts(h.shape[0], h.shape[1])
+        out[key][k] = float(h.mean())
+        out[f"{key}_ci95"][k] = active_stats.intervals_json(h[:, :, None], counts)[0]
+    return out
+
+
+def diagnose(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
+             truths: np.ndarray, pans: np.ndarray, feats: np.ndarray, parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """One condition's diagnostics: the single-view match quality
+    (:func:`services.evaluation.active_bounds.feature_diagnostics`), with ``setup.ideal`` the
+    sensor model's bound and the map oracle (success ratios after k images and their 95 %
+    intervals, keys ``ideal_map_estimate_success[_ci95]``, ``map_oracle_success[_ci95]``), and
+    the share of runs whose initial particles cover the truth's map cell."""
+    out: dict[str, Any] = feature_diagnostics(setup, grid, entries, map_features, truths, pans, feats)
+    if setup.ideal:
+        out.update(_hit_ratios(ideal_hits(setup, grid, entries, map_features, truths, pans, feats),
+                               "ideal_map_estimate_success"))
+        out.update(_hit_ratios(map_oracle_hits(setup, grid, entries, map_features, truths, pans, feats),
+                               "map_oracle_success"))
+    out["initial_particle_in_truth_cell"] = float(np.mean([c for p in parts for c in p["covered"]]))
+    return out
+
+
 def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The experiment. Returns (the JSON-ready result, extras for plotting)."""
     t0 = time.perf_counter()
@@ -349,6 +413,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     timing: list[float] = []
     diagnostics: dict[str, Any] = {}
     bands: dict[str, Any] = {}
+    compared: dict[str, Any] = {}
     for name, ch in conditions:
         feats, dfeats = render_tests(setup, pca, margin, truths, pans, ch, progress,
                                      None if disp is None else disp[0])
@@ -356,21 +421,18 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
                                        "runs" + ("" if not ch else f" ({name})"),
                                        None if disp is None or dfeats is None else (disp[1], dfeats))
         bands[name] = success_by_band(parts, setup.strategies, grid_distance(truths, grid))
+        compared[name] = comparisons(parts, setup.strategies)
         results[name] = summary
         extras[name] = parts
-        diagnostics[name] = feature_diagnostics(setup, grid, entries, map_features, truths, pans, feats)
-        if setup.ideal:
-            diagnostics[name]["ideal_map_estimate_success"] = ideal_success(setup, grid, entries, map_features, truths,
-                                                                            pans, feats)
-            diagnostics[name]["map_oracle_success"] = map_oracle_success(setup, grid, entries, map_features, truths,
-                                                                         pans, feats)
-        diagnostics[name]["initial_particle_in_truth_cell"] = float(np.mean([c for p in parts for c in p["covered"]]))
+        diagnostics[name] = diagnose(setup, grid, entries, map_features, truths, pans, feats, parts)
         timing.extend(v for p in parts for v in p["eval_ms"])
     base = results["none"]
     out: dict[str, Any] = {
         "positions": int(truths.shape[0]),
         "runs": int(setup.runs),
         "strategies": base,
+        "comparisons": compared["none"],
+        "intervals": active_stats.bootstrap_report(),
         "movements": int(setup.movements),
         "setup": setup.report(),
         "map_images": int(grid.shape[0]),
@@ -383,6 +445,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     }
     if changes:
         out["scene_changes"] = {"names": list(changes), "strategies": results["+".join(changes)],
+                                "comparisons": compared["+".join(changes)],
                                 "success_by_grid_distance": bands["+".join(changes)]}
     return out, extras
 
@@ -391,8 +454,8 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
 
 
 def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[str]:
-    """Fig. 3 (error and success against movements, all strategies, std bands) per scene
-    condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
+    """Fig. 3 (error and success against movements, all strategies, std bands on the error,
+    95 % interval bands on the success) per scene condition, and Fig. 4 (particles at the start and at the end of one entropy run)."""
     from services.evaluation.plotting import pyplot
 
     plt = pyplot()
@@ -413,13 +476,16 @@ def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[s
             ax.plot(x, m, "o-", color=colours.get(s), label=s)
             ax.fill_between(x, np.maximum(m - sd, 0), m + sd, color=colours.get(s), alpha=0.15)
             ax2.plot(x, 100 * np.asarray(r["success"]), "o-", color=colours.get(s), label=s)
+            if "success_ci95" in r:
+                ci = 100 * np.asarray(r["success_ci95"])
+                ax2.fill_between(x, ci[:, 0], ci[:, 1], color=colours.get(s), alpha=0.12)
         ax.set_title(f"scene changes: {name}" if name != "none" else "as mapped")
         ax.set_xlabel("camera movements")
         ax.set_ylabel("position error (m), mean +- std")
         ax.legend()
         ax2.axhline(95, color="0.5", ls=":")
         ax2.set_xlabel("camera movements")
-        ax2.set_ylabel("success (%), section 6.1")
+        ax2.set_ylabel("success (%), section 6.1, 95 % interval")
         ax2.set_ylim(0, 102)
         ax2.legend()
     fig.suptitle(f"Active localization, {result['positions']} positions x {result['runs']} runs (Fig. 3)")

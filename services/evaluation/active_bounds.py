@@ -52,10 +52,20 @@ def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarra
 def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
                   truths: np.ndarray,
                   pans: np.ndarray, feats: np.ndarray, images: tuple[int, ...] = (1, 2, 4, 11)) -> dict[str, float]:
-    """Upper bound of the sensor model, without particles: the posterior of the first k images
-    (first pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped
-    area + 30 cm), its maximum as the estimate; success ratio over the test positions. The
-    sensor model is the one ``setup.sensor_model`` names."""
+    """Upper bound of the sensor model, without particles: success ratio over the test
+    positions of :func:`ideal_hits` (keys ``"k"``, position criterion, and ``"k_pose"``)."""
+    return {key: float(np.mean(v)) for key, v in ideal_hits(setup, grid, entries, map_features, truths, pans, feats,
+                                                             images).items()}
+
+
+def ideal_hits(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
+               truths: np.ndarray, pans: np.ndarray, feats: np.ndarray,
+               images: tuple[int, ...] = (1, 2, 4, 11)) -> dict[str, np.ndarray]:
+    """The sensor model's bound per test position: the posterior of the first k images (first
+    pan of run 0, then the sweep) on a dense pose grid (10 cm, 5 deg over the mapped area +
+    30 cm), its maximum as the estimate; success (P,) per test position under key ``"k"``
+    (:func:`lino_loc.metrics.success`) and ``"k_pose"`` (:func:`lino_loc.metrics.success_pose`);
+    k beyond the number of pans left out. The sensor model is the one ``setup.sensor_model`` names."""
     model = setup.sensor_model_for(entries, map_features)
     xmin, xmax = grid[:, 0].min() - 0.3, grid[:, 0].max() + 0.3
     ymin, ymax = grid[:, 1].min() - 0.3, grid[:, 1].max() + 0.3
@@ -63,7 +73,8 @@ def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map
                              np.radians(np.arange(-180.0, 180.0, 5.0)), indexing="ij")
     dense = np.column_stack([gx.ravel(), gy.ravel(), gh.ravel()])
     hstep = math.radians(setup.heading_step_deg)
-    out: dict[str, float] = {}
+    images = tuple(k for k in images if k <= pans.size)
+    out: dict[str, np.ndarray] = {}
     hits: dict[int, list[bool]] = {k: [] for k in images}
     hits_pose: dict[int, list[bool]] = {k: [] for k in images}
     for pos in range(truths.shape[0]):
@@ -77,8 +88,8 @@ def ideal_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map
                 hits[k + 1].append(bool(success(best, truths[pos], grid)[0]))
                 hits_pose[k + 1].append(bool(success_pose(best, truths[pos], grid, setup.step, hstep)[0]))
     for k, v in hits.items():
-        out[str(k)] = float(np.mean(v))
-        out[f"{k}_pose"] = float(np.mean(hits_pose[k]))
+        out[str(k)] = np.asarray(v)
+        out[f"{k}_pose"] = np.asarray(hits_pose[k])
     return out
 
 
@@ -107,7 +118,16 @@ def views_by_position(entries: np.ndarray, map_features: np.ndarray) -> tuple[np
 def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
                        truths: np.ndarray, pans: np.ndarray, feats: np.ndarray,
                        images: tuple[int, ...] = (1, 2, 4, 6, 11, 22)) -> dict[str, float]:
-    """Success of the map-grid nearest neighbour over the first k views of the sweep.
+    """Success ratio of :func:`map_oracle_hits` over the test positions and runs (key ``"k"``)."""
+    return {key: float(np.mean(v)) for key, v in map_oracle_hits(setup, grid, entries, map_features, truths, pans,
+                                                                 feats, images).items()}
+
+
+def map_oracle_hits(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,
+                    truths: np.ndarray, pans: np.ndarray, feats: np.ndarray,
+                    images: tuple[int, ...] = (1, 2, 4, 6, 11, 22)) -> dict[str, np.ndarray]:
+    """Success (P, runs) of the map-grid nearest neighbour over the first k views of the sweep
+    (key ``"k"``; k beyond the number of pans left out).
 
     For test position p and the views y_1..y_k taken at pans u_1..u_k, every map position g
     and robot heading o (on the map's heading lattice) is scored by
@@ -115,7 +135,7 @@ def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray
     is the decision and it succeeds when it is the map position nearest to the truth
     (:func:`lino_loc.metrics.success`, section 6.1, against ``grid``, the survey poses). It uses nothing but the map and knows which pans
     were taken, so it says how many views the map needs to tell the test positions' cells
-    apart; averaged over ``setup.runs`` first pans (sweep order, stride ``sweep_stride``).
+    apart; one column per run's first pan (sweep order, stride ``sweep_stride``).
     """
     xy, table, step = views_by_position(entries, map_features)
     n_head = table.shape[1]
@@ -132,4 +152,4 @@ def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray
                     g = np.unravel_index(np.nanargmin(np.where(np.isnan(cost), np.inf, cost)), cost.shape)[0]
                     named = np.array([xy[g, 0], xy[g, 1], 0.0])
                     hits[k + 1].append(bool(success(named, truths[pos], grid)[0]))
-    return {str(k): float(np.mean(v)) for k, v in hits.items()}
+    return {str(k): np.asarray(v).reshape(truths.shape[0], setup.runs) for k, v in hits.items()}

@@ -8,11 +8,22 @@ section 6.1 (:func:`paper_sensor_model`, :func:`paper_active_vision`): J = 10, k
 35 cm and 0.3 rad, 22 pans over [-2.6, 2.6] rad, H(u) on up to 150 particles. The outlier
 weight is 0.01 (the product's default is larger: it tracks under light and scene changes the
 map does not know; the experiment's test views are taken under the mapping light).
+
+Two configurations of the method are named here:
+
+* :func:`product_defaults`: the method `lino-loc eval active` runs unless told otherwise (the
+  command's option defaults are read from it: the one place to change them);
+* :func:`paper_setup` (`eval active --paper`): the paper's section 6.1 as written: intensity
+  images alone, no virtual headings, 5 PCA features, no preprocessing, the nearest-neighbour
+  sensor model with J = 10, 150 particles, 22 pans, the survey every 75 cm and 15 deg
+  (:data:`PAPER_METHOD`). The filter's own settings (global proposal, process-noise floor),
+  which the paper does not give, are the product's.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from lino_loc.active_vision import ActiveVisionConfig
@@ -40,7 +51,10 @@ def paper_active_vision(**overrides: Any) -> ActiveVisionConfig:
 
 @dataclass(frozen=True)
 class ActiveSetup:
-    """Parameters of the experiment (defaults: the paper's section 6.1)."""
+    """Parameters of the experiment. The configurations `eval active` runs are
+    :func:`product_defaults` and :func:`paper_setup`; the class defaults are the
+    experiment's plain building blocks (``filter`` and ``motion`` empty: the configurations'
+    own defaults)."""
 
     world: str = "office"
     lighting: str = "tube"
@@ -58,7 +72,7 @@ class ActiveSetup:
     roughen_theta: float = 0.0
     inject: float = 0.0
     active: ActiveVisionConfig = field(default_factory=paper_active_vision)
-    positions: int = 20
+    positions: int = 50
     runs: int = 10
     movements: int = 10
     scene_changes: tuple[str, ...] = ()
@@ -76,6 +90,7 @@ class ActiveSetup:
     motion: dict[str, Any] = field(default_factory=dict)
     channels: tuple[str, ...] = ("intensity",)  # with "disparity": the filter fuses both (eq. 8)
     fusion: FusionConfig = field(default_factory=FusionConfig)
+    paper: bool = False  # True: made by paper_setup (the result's setup says so)
 
     def sensor_model_for(self, entries: Any, features: Any, bounds: Any = None) -> Any:
         """The sensor model :attr:`sensor_model` names over one channel's map features
@@ -110,8 +125,43 @@ class ActiveSetup:
             "scene_changes": self.scene_changes, "min_grid_distance": self.min_grid_distance,
             "sweep_stride": self.sweep_stride, "width": self.width, "height": self.height, "size": self.size,
             "seed": self.seed, "strategies": self.strategies, "filter": dict(self.filter),
-            "motion": dict(self.motion), "channels": list(self.channels),
+            "motion": dict(self.motion), "channels": list(self.channels), "paper": self.paper,
         }
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was
             out.update(sensor_model=self.sensor_model, residual_scale=self.interpolation.residual_scale)
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in out.items()}
+
+
+def product_defaults(**experiment: Any) -> ActiveSetup:
+    """The method `lino-loc eval active` runs by default (its options' defaults come from
+    here): the map (survey step and heading step, virtual headings, features, preprocessing,
+    channels), the sensor model, the particles, the action evaluation and the filter's and
+    motion model's settings. ``experiment``: any other :class:`ActiveSetup` field (world,
+    positions, runs, movements, seed, ...), or a method field to override."""
+    method: dict[str, Any] = {
+        "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 5, "virtual_step_deg": 3.0, "features": 5,
+        "preprocess": "none", "channels": ("intensity",), "sensor_model": "nearest_neighbour",
+        "sensor": paper_sensor_model(), "interpolation": InterpolationConfig(), "particles": 150, "inject": 0.0,
+        "active": paper_active_vision(),
+        "filter": {"global_proposal_fraction": 0.5},
+        "motion": {"min_sigma_xy": 0.01, "min_sigma_theta": math.radians(0.5)},
+    }
+    return ActiveSetup(**{**method, **experiment})
+
+
+#: The paper's section 6.1 configuration (:func:`paper_setup`): the settings `--paper` fixes.
+PAPER_METHOD: dict[str, Any] = {
+    "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 1, "features": 5, "preprocess": "none",
+    "channels": ("intensity",), "sensor_model": "nearest_neighbour", "particles": 150,
+}
+
+
+def paper_setup(**experiment: Any) -> ActiveSetup:
+    """The paper's configuration (:data:`PAPER_METHOD`, :func:`paper_sensor_model`: J = 10,
+    :func:`paper_active_vision`: 22 pans, H(u) on <= 150 particles), the rest as :func:`product_defaults`; ``paper`` is
+    True. ``experiment``: the fields the paper leaves free (world, positions, runs, ...)."""
+    clash = sorted(set(experiment) & (set(PAPER_METHOD) | {"sensor", "active", "paper"}))
+    if clash:
+        raise ValueError(f"paper_setup: {', '.join(clash)} is fixed by the paper's configuration")
+    return replace(product_defaults(**experiment), **PAPER_METHOD, sensor=paper_sensor_model(),
+                   active=paper_active_vision(), paper=True)

@@ -1,4 +1,9 @@
-"""`lino-loc eval active`: the paper's active-localization experiment (section 6.1, Fig. 3, 4)."""
+"""`lino-loc eval active`: the paper's active-localization experiment (section 6.1, Fig. 3, 4).
+
+The method's option defaults are :func:`services.evaluation.active_setup.product_defaults`';
+``--paper`` runs :func:`services.evaluation.active_setup.paper_setup` instead, and an option it
+fixes given with another value is an error (exit 2).
+"""
 
 from __future__ import annotations
 
@@ -6,15 +11,19 @@ import argparse
 import json
 import logging
 import math
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+from pydantic import ValidationError
 
 from lino_loc.errors import LinoLocError
-from lino_loc.interpolated_appearance import InterpolationConfig
 from services.evaluation.active import plot, run
 from services.evaluation.active_setup import (
     STRATEGIES,
     ActiveSetup,
-    paper_active_vision,
-    paper_sensor_model,
+    paper_setup,
+    product_defaults,
 )
 from services.evaluation.commands.localization_cmd import parse_channels
 from services.evaluation.plotting import pyplot
@@ -28,30 +37,148 @@ def _table(result: dict) -> str:
         f"Active localization in the simulated {result['setup']['world']}: {result['positions']} positions x "
         f"{result['runs']} runs, {result['map_images']} map images ({result['map_entries']} map entries with "
         f"virtual headings), {result['setup']['particles']} particles, "
-        f"{result['setup']['n_actions']} pans"
+        f"{result['setup']['n_actions']} pans" + (" (the paper's configuration)" if result["setup"].get("paper") else "")
     ]
-    blocks = [("as mapped", result["strategies"], result["success_by_grid_distance"])]
+    blocks = [("as mapped", result["strategies"], result["success_by_grid_distance"], result.get("comparisons", {}))]
     if "scene_changes" in result:
-        blocks.append(("scene changes " + "+".join(result["scene_changes"]["names"]),
-                       result["scene_changes"]["strategies"], result["scene_changes"]["success_by_grid_distance"]))
-    for title, strategies, bands in blocks:
-        n = len(next(iter(strategies.values()))["success"])
-        lines.append(f"\n{title}: success % position / pose cell (mean error m) after k movements")
-        lines.append(f"{'k':<10}" + "".join(f"{k:>14}" for k in range(n)))
-        for s, r in strategies.items():
-            lines.append(f"{s:<10}" + "".join(
-                f"{100 * r['success'][k]:>5.0f}/{100 * r['success_pose'][k]:<3.0f}({r['mean_error_m'][k]:4.2f})"
-                for k in range(n)))
-        for band, b in bands.items():
-            lines.append(f"  test positions {band} m from a map position ({b['positions']}): success % " + ", ".join(
-                f"{s} " + "/".join(f"{100 * v:.0f}" for v in b[s][:4]) for s in strategies if s in b)
-                + " after 0/1/2/3 movements")
+        sc = result["scene_changes"]
+        blocks.append(("scene changes " + "+".join(sc["names"]), sc["strategies"], sc["success_by_grid_distance"],
+                       sc.get("comparisons", {})))
+    for title, strategies, bands, compared in blocks:
+        lines.extend(_block(title, strategies, bands, compared))
     for name, diag in result.get("diagnostics", {}).items():
         lines.append(f"\ndiagnostics ({name}): " + ", ".join(
             f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in diag.items()))
     if result.get("entropy_eval_ms_median") is not None:
         lines.append(f"\nH(u) evaluation: median {result['entropy_eval_ms_median']:.1f} ms CPU")
+    if "intervals" in result:
+        iv = result["intervals"]
+        lines.append(f"95 % intervals and SE: {iv['method']} ({iv['resamples']} resamples, seed {iv['seed']})")
     return "\n".join(lines)
+
+
+def _block(title: str, strategies: dict, bands: dict, compared: dict) -> list[str]:
+    """One scene condition of the table: success, its 95 % interval, bands, comparisons."""
+    n = len(next(iter(strategies.values()))["success"])
+    lines = [f"\n{title}: success % position / pose cell (mean error m) after k movements",
+             f"{'k':<10}" + "".join(f"{k:>14}" for k in range(n))]
+    for s, r in strategies.items():
+        lines.append(f"{s:<10}" + "".join(
+            f"{100 * r['success'][k]:>5.0f}/{100 * r['success_pose'][k]:<3.0f}({r['mean_error_m'][k]:4.2f})"
+            for k in range(n)))
+        if "success_ci95" in r:
+            lines.append(f"{'  95 %':<10}" + "".join(
+                f" {f'[{100 * lo:.0f}-{100 * hi:.0f}]':<14}" for lo, hi in r["success_ci95"]))
+    for band, b in bands.items():
+        lines.append(f"  test positions {band} m from a map position ({b['positions']}): success % " + ", ".join(
+            f"{s} " + "/".join(f"{100 * v:.0f}" for v in b[s][:4]) for s in strategies if s in b)
+            + " after 0/1/2/3 movements")
+    for name, c in compared.items():
+        if isinstance(c, dict):
+            lines.append(f"  {name.replace('-', ' - ')} (paired): " + ", ".join(
+                f"k={k} {100 * c['difference'][k]:+.1f} (SE {100 * c['se'][k]:.1f})"
+                + (" ahead" if c["ahead"][k] else "") for k in range(1, min(4, len(c["difference"])))) + " points")
+    return lines
+
+
+#: The method's options: option dest -> its value in a setup. Their defaults are
+#: :func:`product_defaults`' (argparse default None = not given).
+_METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
+    "step": lambda s: s.step,
+    "heading_step": lambda s: s.heading_step_deg,
+    "virtual_headings": lambda s: s.virtual_headings,
+    "virtual_step": lambda s: s.virtual_step_deg,
+    "features": lambda s: s.features,
+    "preprocess": lambda s: s.preprocess,
+    "channels": lambda s: ",".join(s.channels),
+    "sensor_model": lambda s: s.sensor_model,
+    "j": lambda s: s.sensor.j,
+    "residual_scale": lambda s: s.interpolation.residual_scale,
+    "particles": lambda s: s.particles,
+    "eval_particles": lambda s: s.active.max_particles,
+    "actions": lambda s: s.active.n_actions,
+    "predicted": lambda s: s.active.predicted_neighbours,
+    "inject": lambda s: s.inject,
+    "global_proposal": lambda s: s.filter_config().global_proposal_fraction,
+    "floor_xy": lambda s: s.motion_config().min_sigma_xy,
+    "floor_theta": lambda s: round(math.degrees(s.motion_config().min_sigma_theta), 9),
+}
+#: The options `--paper` fixes (:data:`services.evaluation.active_setup.PAPER_METHOD`).
+_PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "preprocess",
+                                 "channels", "sensor_model", "j", "particles", "actions")
+#: Method options mapped one to one onto an ActiveSetup field.
+_FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
+                           "virtual_step": "virtual_step_deg", "features": "features", "preprocess": "preprocess",
+                           "sensor_model": "sensor_model", "particles": "particles", "inject": "inject"}
+
+
+#: The options of the pydantic configurations' fields (for their validation errors).
+_CONFIG_OPTIONS: dict[str, str] = {"n_actions": "--actions", "max_particles": "--eval-particles",
+                                   "predicted_neighbours": "--predicted", "j": "--j", "residual_scale": "--residual-scale"}
+
+
+def _option(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def _copy(cfg: Any, **changes: Any) -> Any:
+    """A pydantic configuration with ``changes``, validated again."""
+    return type(cfg)(**{**cfg.model_dump(), **changes}) if changes else cfg
+
+
+def with_options(base: ActiveSetup, given: dict[str, Any]) -> ActiveSetup:
+    """``base`` with the method options given on the command line (keys of :data:`_METHOD`)."""
+    active = {f: given[k] for k, f in (("actions", "n_actions"), ("eval_particles", "max_particles"),
+                                       ("predicted", "predicted_neighbours")) if k in given}
+    filt = dict(base.filter)
+    if "global_proposal" in given:
+        filt["global_proposal_fraction"] = given["global_proposal"]
+    motion = dict(base.motion)
+    if "floor_xy" in given:
+        motion["min_sigma_xy"] = given["floor_xy"]
+    if "floor_theta" in given:
+        motion["min_sigma_theta"] = math.radians(given["floor_theta"])
+    fields = {f: given[k] for k, f in _FIELDS.items() if k in given}
+    if "channels" in given:
+        fields["channels"] = parse_channels(given["channels"])
+    return replace(base, **fields, filter=filt, motion=motion, active=_copy(base.active, **active),
+                   sensor=_copy(base.sensor, **({"j": given["j"]} if "j" in given else {})),
+                   interpolation=_copy(base.interpolation, **({"residual_scale": given["residual_scale"]}
+                                                              if "residual_scale" in given else {})))
+
+
+def _check_paper(given: dict[str, Any]) -> None:
+    """An option ``--paper`` fixes, given with another value, is an error."""
+    paper = paper_setup()
+    for k in _PAPER_FIXED:
+        if k in given:
+            v = ",".join(parse_channels(given[k])) if k == "channels" else given[k]
+            if v != _METHOD[k](paper):
+                raise LinoLocError(f"--paper fixes {_option(k)} {_METHOD[k](paper)} (got {given[k]})")
+
+
+def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
+    """The experiment's setup from the command line: :func:`product_defaults` or with
+    ``--paper`` :func:`paper_setup`, then the method options given."""
+    given = {k: getattr(args, k) for k in _METHOD if getattr(args, k) is not None}
+    experiment = dict(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
+                      scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal)
+    for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
+                        *((_option(k), given[k]) for k in ("particles", "actions", "eval_particles",
+                                                           "virtual_headings") if k in given)):
+        if value < 1:
+            raise LinoLocError(f"{name} must be at least 1 (got {value})")
+    if "residual_scale" in given and not given["residual_scale"] > 0.0:
+        raise LinoLocError(f"--residual-scale must be positive (got {given['residual_scale']})")
+    if args.paper:
+        _check_paper(given)
+    try:
+        setup = with_options(paper_setup(**experiment) if args.paper else product_defaults(**experiment), given)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = str(err["loc"][0]) if err["loc"] else ""
+        raise LinoLocError(f"{_CONFIG_OPTIONS.get(field, field)}: {err['msg']}") from None
+    return setup
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -64,26 +191,7 @@ def _run(args: argparse.Namespace) -> int:
             from drivers.sim.world import load_world
 
             changes = load_world(args.world).scene_change_names
-    for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
-                        ("--particles", args.particles), ("--actions", args.actions), ("--eval-particles", args.eval_particles),
-                        ("--virtual-headings", args.virtual_headings)):
-        if value < 1:
-            raise LinoLocError(f"{name} must be at least 1 (got {value})")
-    if not args.residual_scale > 0.0:
-        raise LinoLocError(f"--residual-scale must be positive (got {args.residual_scale})")
-    setup = ActiveSetup(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
-                        particles=args.particles, scene_changes=changes,
-                        seed=args.seed, workers=args.workers, features=args.features,
-                        sensor=paper_sensor_model(j=args.j), sensor_model=args.sensor_model,
-                        interpolation=InterpolationConfig(residual_scale=args.residual_scale),
-                        active=paper_active_vision(n_actions=args.actions, max_particles=args.eval_particles,
-                                                   predicted_neighbours=args.predicted),
-                        step=args.step, heading_step_deg=args.heading_step, inject=args.inject,
-                        ideal=args.ideal, virtual_headings=args.virtual_headings,
-                        virtual_step_deg=args.virtual_step, preprocess=args.preprocess,
-                        filter={"global_proposal_fraction": args.global_proposal},
-                        motion={"min_sigma_xy": args.floor_xy, "min_sigma_theta": math.radians(args.floor_theta)},
-                        channels=parse_channels(args.channels))
+    setup = _setup(args, changes)
     bar = Progress("active")
     result, extras = run(setup, progress=lambda label, d, n: bar.update(d, n, label=label))
     bar.close()
@@ -95,57 +203,79 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def register_eval(eval_sub: argparse._SubParsersAction) -> None:
+    d = product_defaults()
+    dv = {k: get(d) for k, get in _METHOD.items()}
     p = eval_sub.add_parser(
         "active",
         help="Fig. 3: localization error and success against camera movements (entropy, random, sweep)",
-        description="The paper's active-localization experiment in the simulated office: map every 75 cm "
-        "and 15 deg, 5 features, J = 10, 150 particles, 22 pans, uniform initial belief, test positions "
-        f"off the grid; strategies {', '.join(STRATEGIES)}.",
+        description="The paper's active-localization experiment (section 6.1) in a simulated world: a survey "
+        "map, a filter from a uniform initial belief, test positions off the grid, strategies "
+        f"{', '.join(STRATEGIES)}; success ratios with 95 % intervals and the strategies' paired differences "
+        "with their standard errors (bootstrap over positions then runs). By default the product's method "
+        f"(map every {dv['step']:g} m and {dv['heading_step']:g} deg, {dv['virtual_headings']} virtual headings, "
+        f"{dv['features']} features, channels {dv['channels']}, {dv['sensor_model']} sensor model, "
+        f"J = {dv['j']}, {dv['particles']} particles, {dv['actions']} pans); --paper: the paper's.",
     )
-    p.add_argument("--world", default="office")
-    p.add_argument("--positions", type=int, default=20, help="test positions (default 20)")
-    p.add_argument("--runs", type=int, default=10, help="runs per position (default 10)")
-    p.add_argument("--movements", type=int, default=10, help="camera movements per run (default 10)")
-    p.add_argument("--particles", type=int, default=150, help="particles of the filter")
-    p.add_argument("--eval-particles", type=int, default=150, help="particles used to evaluate H(u)")
-    p.add_argument("--predicted", choices=("all", "leave_one_out"), default="all",
-                   help="sensor model of a predicted observation (see lino_loc.active_vision)")
-    p.add_argument("--inject", type=float, default=0.0,
-                   help="investigation: after each update replace this fraction of the particles by draws "
-                   "from the image's sensor model (default 0: the filter as the service runs it)")
-    p.add_argument("--global-proposal", type=float, default=0.5,
-                   help="FilterConfig.global_proposal_fraction: share of the particles drawn from the first "
-                   "image's sensor model (0: the plain APF from the uniform set)")
-    p.add_argument("--floor-xy", type=float, default=0.01,
-                   help="MotionModelConfig.min_sigma_xy: process-noise floor per update, metres")
-    p.add_argument("--floor-theta", type=float, default=0.5,
-                   help="MotionModelConfig.min_sigma_theta: process-noise floor per update, degrees")
+    p.add_argument("--paper", action="store_true",
+                   help="the paper's configuration of section 6.1: intensity alone, no virtual headings, 5 features, "
+                   "no preprocessing, nearest-neighbour sensor model J = 10, 150 particles, 22 pans, survey every "
+                   "0.75 m / 15 deg; any of those options given with another value is an error")
+    p.add_argument("--world", default=d.world)
+    p.add_argument("--positions", type=int, default=d.positions, help=f"test positions (default {d.positions})")
+    p.add_argument("--runs", type=int, default=d.runs, help=f"runs per position (default {d.runs})")
+    p.add_argument("--movements", type=int, default=d.movements,
+                   help=f"camera movements per run (default {d.movements})")
+    _method_options(p, dv)
     p.add_argument("--ideal", action="store_true",
                    help="also compute the sensor model's upper bound (dense-grid posterior, no particles) and "
                    "the map oracle (the map position whose stored views best match the views taken)")
-    p.add_argument("--step", type=float, default=0.75, help="map grid step, metres")
-    p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees")
-    p.add_argument("--actions", type=int, default=22, help="candidate pan angles")
-    p.add_argument("--virtual-headings", type=int, default=5,
-                   help="views per map image, turned by multiples of --virtual-step (lino_loc.virtual_views); "
-                   "1 = the paper's plain map (default 5)")
-    p.add_argument("--virtual-step", type=float, default=3.0, help="degrees between virtual headings (default 3)")
-    p.add_argument("--features", type=int, default=5)
-    p.add_argument("--preprocess", choices=("none", "histeq", "gradient"), default="none",
-                   help="image preprocessing before PCA (default none: section 6.1 names none)")
-    p.add_argument("--j", type=int, default=10, help="nearest neighbours of the sensor model")
-    p.add_argument("--sensor-model", choices=("nearest_neighbour", "interpolated"), default="nearest_neighbour",
-                   help="p(y | x): the J nearest map entries (default, section 3) or the map's appearance "
-                   "interpolated between survey poses (lino_loc.interpolated_appearance)")
-    p.add_argument("--residual-scale", type=float, default=1.0,
-                   help="interpolated sensor model: scale of the leave-one-out residuals (default 1)")
     p.add_argument("--scene-changes", default="",
                    help="also run with these scene changes of the world (comma-separated, or 'all')")
-    p.add_argument("--channels", default="intensity",
-                   help="the map's channels: intensity, or intensity,disparity (the filter fuses both, eq. 8; "
-                   "the views are chosen with the intensity channel's predictions)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--plot", metavar="DIR", default=None, help="write Fig. 3 and Fig. 4 PNGs here")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_run)
+
+
+def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
+    """The method's options; their defaults ``dv`` (:func:`product_defaults`' values)."""
+    p.add_argument("--particles", type=int, help=f"particles of the filter (default {dv['particles']})")
+    p.add_argument("--eval-particles", type=int,
+                   help=f"particles used to evaluate H(u) (default {dv['eval_particles']})")
+    p.add_argument("--predicted", choices=("all", "leave_one_out"),
+                   help=f"sensor model of a predicted observation (see lino_loc.active_vision; default "
+                   f"{dv['predicted']})")
+    p.add_argument("--inject", type=float,
+                   help="investigation: after each update replace this fraction of the particles by draws "
+                   f"from the image's sensor model (default {dv['inject']:g}; 0: the filter as the service runs it)")
+    p.add_argument("--global-proposal", type=float,
+                   help="FilterConfig.global_proposal_fraction: share of the particles drawn from the first "
+                   f"image's sensor model (0: the plain APF from the uniform set; default {dv['global_proposal']:g})")
+    p.add_argument("--floor-xy", type=float,
+                   help=f"MotionModelConfig.min_sigma_xy: process-noise floor per update, metres "
+                   f"(default {dv['floor_xy']:g})")
+    p.add_argument("--floor-theta", type=float,
+                   help=f"MotionModelConfig.min_sigma_theta: process-noise floor per update, degrees "
+                   f"(default {dv['floor_theta']:g})")
+    p.add_argument("--step", type=float, help=f"map grid step, metres (default {dv['step']:g})")
+    p.add_argument("--heading-step", type=float, help=f"map heading step, degrees (default {dv['heading_step']:g})")
+    p.add_argument("--actions", type=int, help=f"candidate pan angles (default {dv['actions']})")
+    p.add_argument("--virtual-headings", type=int,
+                   help="views per map image, turned by multiples of --virtual-step (lino_loc.virtual_views); "
+                   f"1 = the paper's plain map (default {dv['virtual_headings']})")
+    p.add_argument("--virtual-step", type=float,
+                   help=f"degrees between virtual headings (default {dv['virtual_step']:g})")
+    p.add_argument("--features", type=int, help=f"PCA features (default {dv['features']})")
+    p.add_argument("--preprocess", choices=("none", "histeq", "gradient"),
+                   help=f"image preprocessing before PCA (default {dv['preprocess']}; section 6.1 names none)")
+    p.add_argument("--j", type=int, help=f"nearest neighbours of the sensor model (default {dv['j']})")
+    p.add_argument("--sensor-model", choices=("nearest_neighbour", "interpolated"),
+                   help="p(y | x): the J nearest map entries (nearest_neighbour, section 3) or the map's appearance "
+                   f"interpolated between survey poses (lino_loc.interpolated_appearance); default {dv['sensor_model']}")
+    p.add_argument("--residual-scale", type=float,
+                   help=f"interpolated sensor model: scale of the leave-one-out residuals (default "
+                   f"{dv['residual_scale']:g})")
+    p.add_argument("--channels",
+                   help="the map's channels: intensity, or intensity,disparity (the filter fuses both, eq. 8; "
+                   f"the views are chosen with the intensity channel's predictions; default {dv['channels']})")
