@@ -61,10 +61,11 @@ The window, ``WINDOW_FRAMES`` = 100 frames (20 s), is what the slowest start nee
 tracking with the head moving. It is not a test of holding the pose afterwards: once tracking,
 the policy turns the head back to ``home_pan`` (0, ahead), the camera stands still and no view
 is counted any more (neither to confirm nor to unconfirm), and at a start whose view ahead is
-ambiguous the estimate then slides, still ``tracking``, towards the survey pose that explains
-that one view best (7.1, 0.35: towards (6.0, 0.0), 1.1 m off, past 1 m some 5-20 s after
-reaching tracking; run this file with ``--window 250 --frames`` to see it). Within the window such a drift is counted and warned
-about as above.
+ambiguous the estimate then slides towards the survey pose that explains that one view best
+(7.1, 0.35: towards (6.0, 0.0), 1.1 m off, past 1 m some 5-20 s after reaching tracking), as
+a drift while ``tracking``, or while ``global`` after a confirmation look failed, until a
+later look confirms it there: a wrong confirmation. Run this file with ``--window 250
+--frames`` to see it. Within the window either is counted as above.
 
 The five start poses were chosen with an offline scan of the office (Localizer fed six
 noisy views of one pose): from each of them one view keeps the filter in ``global`` (several
