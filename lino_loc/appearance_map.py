@@ -875,8 +875,12 @@ def build_map(
     seed: int = 0,
     workers: int | None = None,
     virtual_offsets: Sequence[float] | None = None,
+    disparity_features: int | None = None,
 ) -> AppearanceMap:
     """Build an appearance map from a dataset (eq. 1 for every image).
+
+    ``disparity_features``: the disparity channel's number of features (default
+    ``n_features``); its EM-PCA's cost grows with the square of it.
 
     ``virtual_offsets`` (radians, e.g. ``lino_loc.virtual_views.offsets(radians(3), 5)``):
     every image also gives the views turned by these heading offsets
@@ -899,8 +903,8 @@ def build_map(
         )
     }
     if "disparity" in channels:
-        chans["disparity"] = build_disparity_channel(ds, n_features, (w, h), progress, seed=seed, virtual=virtual,
-                                                     workers=workers)
+        chans["disparity"] = build_disparity_channel(ds, disparity_features or n_features, (w, h), progress,
+                                                     seed=seed, virtual=virtual, workers=workers)
     return AppearanceMap(
         poses=ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual.offsets),
         channels=chans,

@@ -177,6 +177,10 @@ class MapBuildConfig(_Section):
     features: int = Field(5, ge=1, le=200, description="PCA features per image (eq. 1)")
     preprocess: Preprocess = "none"
     disparity: bool = Field(False, description="also build the disparity channel (EM-PCA)")
+    disparity_features: int | None = Field(
+        None, ge=1, le=200, description="the disparity channel's features (default: features); its EM's "
+        "cost grows with the square of it"
+    )
     disparity_source: Literal["stereo-matcher", "dense-depth"] = Field(
         "stereo-matcher",
         description="the disparity channel's data: the survey's stereo pairs through the product's block "

@@ -323,7 +323,7 @@ def _code_fingerprint() -> str:
 def _build_record(build: MapBuildConfig, world_fingerprint: str) -> dict[str, Any]:
     return {
         "version": SIDECAR_VERSION,
-        "build": build.model_dump(mode="json"),
+        "build": build.model_dump(mode="json", exclude_none=True),  # unset optional keys: old caches stay valid
         "world_fingerprint": world_fingerprint,
         "code_fingerprint": _code_fingerprint(),
     }
@@ -426,7 +426,7 @@ def ensure_sim_map(
             channels = ("intensity", "disparity") if build.disparity else ("intensity",)
             amap = build_map(
                 Dataset.open(survey_dir), n_features=build.features, preprocess=build.preprocess,
-                size=size, channels=channels, seed=seed,
+                size=size, channels=channels, seed=seed, disparity_features=build.disparity_features,
                 virtual_offsets=None if build.virtual_headings == 1 else offsets(
                     math.radians(build.virtual_step_deg), build.virtual_headings),
             )

@@ -140,6 +140,10 @@ def test_disparity_channel_round_trip(dataset: Dataset, tmp_path: Path) -> None:
     np.testing.assert_allclose(disp.project(query), disp.features[3], rtol=1e-3, atol=1e-3)
     # A map with no stereo match at all observes nothing: NaN features, not the prior mean.
     assert np.all(np.isnan(disp.project(np.full_like(query, np.nan))))
+    # the disparity channel may have fewer features than intensity
+    few = build_map(dataset, n_features=4, size=SIZE, channels=("intensity", "disparity"), disparity_features=2)
+    assert few.channels["disparity"].features.shape == (40, 2) and few.channels["intensity"].features.shape == (40, 4)
+    np.testing.assert_array_equal(few.channels["intensity"].features, m.channels["intensity"].features)
     # the disparity rows are read by a thread pool in chunks; without one they are the same
     from lino_loc.appearance_map import _disparity_rows
 

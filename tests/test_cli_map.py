@@ -181,6 +181,12 @@ def test_disparity_channel_info_names_its_source_and_the_em(tmp_path: Path, caps
     code, _, err = _run(capsys, "map", "build", str(root), "--out", str(out_map), "--features", "3",
                         "--size", "12x9", "--channels", "intensity,disparity")
     assert code == 0, err
+    few = tmp_path / "few.npz"
+    code, _, err = _run(capsys, "map", "build", str(root), "--out", str(few), "--features", "3",
+                        "--disparity-features", "2", "--size", "12x9", "--channels", "intensity,disparity")
+    assert code == 0, err
+    code, out, _ = _run(capsys, "map", "info", str(few), "--json")
+    assert {c: v["n_features"] for c, v in json.loads(out)["channels"].items()} == {"intensity": 3, "disparity": 2}
     code, out, _ = _run(capsys, "map", "info", str(out_map), "--json")
     params = json.loads(out)["channels"]["disparity"]["params"]
     assert params["source"] == "stereo-matcher" and params["em_converged"] is True

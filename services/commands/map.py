@@ -87,6 +87,7 @@ def _build(args: argparse.Namespace) -> int:
             method=args.method,
             channels=args.channels,
             virtual_offsets=virtual,
+            disparity_features=args.disparity_features,
         )
     finally:
         bar.close()
@@ -177,6 +178,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", help="dataset folder (made by lino-loc survey or lino-loc dataset import)")
     p.add_argument("--out", required=True, help="map file to write (.npz)")
     p.add_argument("--features", type=int, default=DEFAULT_FEATURES, help="PCA features per image (default %(default)s)")
+    p.add_argument("--disparity-features", type=_positive_int, default=None, metavar="N",
+                   help="the disparity channel's features (default: --features; its EM costs grow with the square)")
     p.add_argument("--preprocess", choices=PREPROCESS_METHODS, default="none", help="image preprocessing (default %(default)s)")
     p.add_argument(
         "--size", type=_size, default=DEFAULT_SIZE, metavar="WxH",

@@ -108,6 +108,7 @@ def render_map(
                           progress=(lambda d, n: progress("map", d, n)) if progress else None,
                           virtual_headings=setup.virtual_headings, virtual_step_deg=setup.virtual_step_deg,
                           disparity="disparity" in setup.channels,
+                          disparity_features=setup.disparity_features,
                           )[setup.preprocess]
     ch = amap.channels["intensity"]
     dch = amap.channels.get("disparity")

@@ -89,6 +89,7 @@ class ActiveSetup:
     filter: dict[str, Any] = field(default_factory=dict)
     motion: dict[str, Any] = field(default_factory=dict)
     channels: tuple[str, ...] = ("intensity",)  # with "disparity": the filter fuses both (eq. 8)
+    disparity_features: int | None = None  # the disparity channel's features (None: ``features``)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     paper: bool = False  # True: made by paper_setup (the result's setup says so)
 
@@ -127,6 +128,8 @@ class ActiveSetup:
             "seed": self.seed, "strategies": self.strategies, "filter": dict(self.filter),
             "motion": dict(self.motion), "channels": list(self.channels), "paper": self.paper,
         }
+        if self.disparity_features is not None:  # reported only when set
+            out["disparity_features"] = self.disparity_features
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was
             out.update(sensor_model=self.sensor_model, residual_scale=self.interpolation.residual_scale)
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in out.items()}

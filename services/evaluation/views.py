@@ -229,6 +229,7 @@ def build_sim_maps(
     disparity: bool = False,
     stereo: StereoConfig | None = None,
     min_valid_fraction: float = 0.25,
+    disparity_features: int | None = None,
 ) -> dict[str, AppearanceMap]:
     """Appearance maps (eq. 1) of a simulated survey, one per preprocessing, built in memory.
 
@@ -241,7 +242,8 @@ def build_sim_maps(
     gives that many views turned ``virtual_step_deg`` apart (:mod:`lino_loc.virtual_views`).
     ``disparity``: every map also gets the disparity channel (section 5) of the same survey's
     stereo pairs, through the product's matcher (``stereo``, sparse: NaN where it found no
-    match) and PCA with missing data (:func:`lino_loc.appearance_map.disparity_channel_from_vectors`).
+    match) and PCA with missing data (:func:`lino_loc.appearance_map.disparity_channel_from_vectors`)
+    with ``disparity_features`` features (default ``features``).
     """
     import math
 
@@ -261,6 +263,8 @@ def build_sim_maps(
     if disparity:
         blob = stereo.model_dump_json() + f"|{min_valid_fraction:g}"
         depth_key = f"-disparity-{hashlib.sha256(blob.encode()).hexdigest()[:10]}"
+        if disparity_features is not None and disparity_features != features:
+            depth_key += f"-d{disparity_features}f"
     key = (
         f"{w.name}-{lighting}-{step:g}m-{heading_step_deg:g}deg-{features}f-{{pre}}-{width}x{height}-"
         f"{size[0]}x{size[1]}-s{seed}"
@@ -290,7 +294,8 @@ def build_sim_maps(
     virtual = None if virtual_headings <= 1 else virtual_setup(
         info, size, offsets(math.radians(virtual_step_deg), virtual_headings))
     depth = None if not disparity else disparity_channel_from_vectors(
-        vectors["disparity"], size, features, min_valid_fraction=min_valid_fraction, seed=seed, virtual=virtual)
+        vectors["disparity"], size, disparity_features or features, min_valid_fraction=min_valid_fraction, seed=seed,
+        virtual=virtual)
     for pre in missing:
         ch = intensity_channel_from_vectors(vectors[pre], pre, size, features,  # type: ignore[arg-type]
                                             virtual=virtual, seed=seed)

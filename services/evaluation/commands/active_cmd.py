@@ -89,6 +89,7 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
     "virtual_headings": lambda s: s.virtual_headings,
     "virtual_step": lambda s: s.virtual_step_deg,
     "features": lambda s: s.features,
+    "disparity_features": lambda s: s.disparity_features,
     "preprocess": lambda s: s.preprocess,
     "channels": lambda s: ",".join(s.channels),
     "sensor_model": lambda s: s.sensor_model,
@@ -108,7 +109,8 @@ _PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "fe
                                  "channels", "sensor_model", "j", "particles", "actions")
 #: Method options mapped one to one onto an ActiveSetup field.
 _FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
-                           "virtual_step": "virtual_step_deg", "features": "features", "preprocess": "preprocess",
+                           "virtual_step": "virtual_step_deg", "features": "features",
+                           "disparity_features": "disparity_features", "preprocess": "preprocess",
                            "sensor_model": "sensor_model", "particles": "particles", "inject": "inject"}
 
 
@@ -165,7 +167,7 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
                       scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal)
     for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
                         *((_option(k), given[k]) for k in ("particles", "actions", "eval_particles",
-                                                           "virtual_headings") if k in given)):
+                                                           "virtual_headings", "disparity_features") if k in given)):
         if value < 1:
             raise LinoLocError(f"{name} must be at least 1 (got {value})")
     if "residual_scale" in given and not given["residual_scale"] > 0.0:
@@ -267,6 +269,9 @@ def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
     p.add_argument("--virtual-step", type=float,
                    help=f"degrees between virtual headings (default {dv['virtual_step']:g})")
     p.add_argument("--features", type=int, help=f"PCA features (default {dv['features']})")
+    p.add_argument("--disparity-features", type=int,
+                   help="the disparity channel's PCA features (default: --features"
+                   + ("" if dv["disparity_features"] is None else f"; product default {dv['disparity_features']}") + ")")
     p.add_argument("--preprocess", choices=("none", "histeq", "gradient"),
                    help=f"image preprocessing before PCA (default {dv['preprocess']}; section 6.1 names none)")
     p.add_argument("--j", type=int, help=f"nearest neighbours of the sensor model (default {dv['j']})")
