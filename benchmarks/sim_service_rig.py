@@ -12,8 +12,8 @@ The map is the integration tests' (the office surveyed every 50 cm and 15 deg, 8
 images, 5 features), built once by :func:`services.sim_launcher.ensure_sim_map` and cached
 in the temporary folder; for other image sizes (``Settings.width`` x ``height``) the same
 survey at that size (:func:`map_cache`). ``Settings.product_map`` uses the product's simulated
-map instead (``config/sim.toml``'s ``[map.build]``: every 75 cm and 15 deg, 5 features, 5
-virtual headings, the disparity channel fused with intensity), cached beside it.
+map instead (``config/sim.toml``'s ``[map.build]``, read from the file: every 75 cm and 15
+deg with virtual headings, the disparity channel fused with intensity), cached beside it.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def map_cache(width: int = 80, height: int = 60) -> Path:
 
 def product_map_cache(width: int = 320, height: int = 240) -> Path:
     """The cached map of ``config/sim.toml``'s ``[map.build]`` for ``width`` x ``height`` images."""
-    return MAP_CACHE.with_name(f"office-{width}x{height}-75cm-15deg-5f-v5-disparity.npz")
+    return MAP_CACHE.with_name(f"office-{width}x{height}-sim-toml-map.npz")
 
 
 def _product_map_build() -> str:

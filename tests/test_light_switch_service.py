@@ -95,9 +95,22 @@ def test_sim_rejects_an_unknown_switch_lighting_at_start(tmp_path: Path, bad: st
     assert bad in capsys.readouterr().err
 
 
-#: The map of the service with depth (config/sim.toml's setting at the camera's 320 x 240),
-#: cached beside the intensity-only one.
-DEPTH_MAP_CACHE = MAP_CACHE.with_name("office-320x240-75cm-15deg-5f-v5-disparity.npz")
+#: The map of the service with depth (config/sim.toml's ``[map.build]`` at the camera's 320 x
+#: 240), cached beside the intensity-only one (rebuilt when the settings change: its sidecar).
+DEPTH_MAP_CACHE = MAP_CACHE.with_name("office-320x240-sim-toml-map.npz")
+
+
+def product_map_build() -> str:
+    """config/sim.toml's ``[map.build]`` as TOML lines (the simulated service's map, read from
+    the file so that this test follows the product's choice); width and height are the test's."""
+    import json
+    import tomllib
+
+    with (Path(__file__).resolve().parents[1] / "config" / "sim.toml").open("rb") as f:
+        build = tomllib.load(f)["map"]["build"]
+    return "\n".join(f"{k} = {json.dumps(v)}" for k, v in build.items() if k not in ("width", "height"))
+
+
 SWITCH_WINDOW_S = 60.0
 
 
@@ -121,12 +134,7 @@ port = "{odometry}"
 [map]
 path = "{DEPTH_MAP_CACHE}"
 [map.build]
-world = "office"
-step = 0.75
-heading_step_deg = 15.0
-features = 5
-virtual_headings = 5
-disparity = true
+{product_map_build()}
 [localizer.filter]
 n_particles = 1000
 [endpoints]
@@ -145,9 +153,9 @@ level = "INFO"
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # a first run also builds the map with its disparity channel
 def test_with_depth_the_daemon_stays_within_half_a_metre_after_the_lights_switch(tmp_path: Path) -> None:
-    """The simulated service with both channels (config/sim.toml's map: the office every 75 cm
-    / 15 deg, 5 features, 5 virtual headings, plus the disparity channel of the survey's
-    stereo pairs through the product's matcher), the camera at 320 x 240 and 5 fps, the robot
+    """The simulated service with both channels (config/sim.toml's ``[map.build]``: the office
+    every 75 cm / 15 deg with 5 virtual headings, intensity and the disparity channel of the
+    survey's stereo pairs through the product's matcher), the camera at 320 x 240 and 5 fps, the robot
     driving. Once the daemon tracks under the mapping light, SIGUSR2 switches the lights to
     bulb; over the next ``SWITCH_WINDOW_S`` seconds the median position error of the
     daemon's poses against the simulator's truth is below 0.5 m."""
