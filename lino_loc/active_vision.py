@@ -38,7 +38,9 @@ product and one exponential for the kernels of all map entries at all camera pos
 x M particles), then per action a sparse (M x N, J non-zeros per row) times dense (N x M)
 product gives the likelihood of every predicted observation at every particle, and the
 (A x M x M) entropies follow. The nearest map entry of the A M camera poses comes from a
-k-d tree over the same embedding.
+k-d tree over the same embedding. Kernel factors and particle weights below
+``exp(LOG_NEGLIGIBLE)`` of their peak are floored (:data:`LOG_NEGLIGIBLE`: below the float32
+resolution of the sums, it keeps them free of subnormal numbers).
 
 The policy (:class:`ActivePolicy`) decides WHEN to look (belief not converged: the filter
 state is ``global`` or ``lost``, or the belief entropy is above ``trigger_entropy``; or the
@@ -252,6 +254,25 @@ def _merge(p: FloatArray, lw: FloatArray) -> tuple[FloatArray, FloatArray]:
     return uniq, np.log(w) - math.log(w.sum())
 
 
+LOG_NEGLIGIBLE = -40.0
+"""The floor of :class:`ActionEvaluator`'s float32 sums: every kernel factor (peak 1) and every
+particle weight relative to the largest, ``x``, enters as ``max(x, c) - c`` with
+``c = exp(LOG_NEGLIGIBLE)``. That differs from ``x`` by less than ``c`` and equals it in
+float32 for ``x >= c 2^25``, so a likelihood that holds the outlier floor, or any kernel above
+``c 2^25``, is unchanged. It keeps the sums free of float32 subnormal numbers (far kernels,
+products of two small factors), which the CPU multiplies and adds in microcode, many times
+slower than normal ones."""
+
+
+def _kernel_exp(t: np.ndarray) -> np.ndarray:
+    """``max(exp(t), c) - c`` in place, in the dtype of ``t`` (``c = exp(LOG_NEGLIGIBLE)``)."""
+    lo = t.dtype.type(LOG_NEGLIGIBLE)
+    np.maximum(t, lo, out=t)
+    np.exp(t, out=t)
+    t -= np.exp(np.full(1, lo, dtype=t.dtype))[0]
+    return np.maximum(t, t.dtype.type(0.0), out=t)  # exp's last-bit rounding may differ per path
+
+
 class ActionEvaluator:
     """H(u) for candidate pan angles with the filter's own sensor model (module docstring).
 
@@ -368,8 +389,8 @@ class ActionEvaluator:
         return self.config.actions()
 
     def _kernels(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, IntArray]:
-        """Kernel table exp(-|e(m_j) - e(c_ak)|^2 / 2) as (A, N, M) float32 with entries in
-        column order, and the column of the nearest map entry to each camera pose (A, M)."""
+        """Kernel table exp(-|e(m_j) - e(c_ak)|^2 / 2) as (A, N, M) float32 (floored:
+        :data:`LOG_NEGLIGIBLE`) with entries in column order, and the column of the nearest map entry to each camera pose (A, M)."""
         a_n, m = u.size, p.shape[0]
         if self.grid:
             g, v, pred = self._grid_factors(p, u)
@@ -383,21 +404,22 @@ class ActionEvaluator:
         t = self._emb_map32 @ e32.T  # -|e_n - e_c|^2 / 2 = e_n.e_c - |e_n|^2/2 - |e_c|^2/2
         t -= 0.5 * self._sq_map[:, None]
         t -= 0.5 * np.einsum("ij,ij->i", e32, e32)[None, :]
-        np.minimum(t, 0.0, out=t)  # round-off; far kernels underflow to 0
-        np.exp(t, out=t)
+        np.minimum(t, 0.0, out=t)  # round-off
+        t = _kernel_exp(t)
         kern = t.reshape(-1, a_n, m).transpose(1, 0, 2)
         return np.ascontiguousarray(kern), np.asarray(near, dtype=np.int64).reshape(a_n, m)
 
     def _grid_factors(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, np.ndarray, IntArray]:
         """On a product grid the kernel factorizes, exp(-|e(m_(p,h)) - e(c_ak)|^2 / 2) =
-        g[p, k] v[a, h, k]: position factor g (P, M), heading factor v (A, H, M) (float32), and
-        the column of the nearest map entry to each camera pose (A, M)."""
+        g[p, k] v[a, h, k]: position factor g (P, M), heading factor v (A, H, M) (float32, each
+        floored: :data:`LOG_NEGLIGIBLE`), and the column of the nearest map entry to each
+        camera pose (A, M)."""
         pos = self._positions
         dx = pos[:, 0:1] - p[None, :, 0]
         dy = pos[:, 1:2] - p[None, :, 1]
         lg = -(dx * dx + dy * dy) / (2.0 * self.sigma_xy**2)  # (P, M)
         near_p = np.argmax(lg, axis=0)
-        g = np.exp(lg.astype(np.float32))
+        g = _kernel_exp(lg.astype(np.float32))
         cam = p[None, :, 2] + u[:, None]  # (A, M)
         # cos(cam - h) = cos cam cos h + sin cam sin h, in float32 (A, H, M)
         ang = np.cos(cam).astype(np.float32)[:, None, :] * self._cos_h[None, :, None]
@@ -405,7 +427,7 @@ class ActionEvaluator:
         near_h = np.argmax(ang, axis=1)
         ang -= np.float32(1.0)
         ang *= np.float32(self.kappa)
-        v = np.exp(ang, out=ang)
+        v = _kernel_exp(ang)
         return g, v, near_p[None, :] * self._headings.size + near_h
 
     def _mixture_sums(self, p: FloatArray, u: FloatArray) -> tuple[np.ndarray, IntArray]:
@@ -454,7 +476,8 @@ class ActionEvaluator:
         """log p(y_i(u) | camera_pose(x_k, u)) as (A, M_i, M_k), and the predicted map entries (A, M).
 
         Equals ``model.log_likelihood_matrix(features[n], camera_pose(particles, u))`` row by
-        row (the tests check it); computed with the cached N x J mixtures."""
+        row (the tests check it); computed with the cached N x J mixtures and the floor of
+        :data:`LOG_NEGLIGIBLE` (outside the bounds a likelihood below it can be -inf)."""
         p = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
         u = np.asarray(actions, dtype=np.float64).reshape(-1)
         s, pred = self._mixture_sums(p, u)
@@ -481,7 +504,7 @@ class ActionEvaluator:
         # the bounds); H_i = log Z - sum_k q log q / Z with Z = sum_k q.
         inside = self.model.bounds.contains(p[:, :2])
         s += (self._floor_over_norm * inside).astype(np.float32)[None, None, :]
-        s *= (pi / pi.max()).astype(np.float32)[None, None, :]
+        s *= _kernel_exp(lw - lw.max()).astype(np.float32)[None, None, :]  # pi_k / max pi, floored
         z = s.sum(axis=-1, dtype=np.float64)
         lq = np.zeros_like(s)
         np.log(s, out=lq, where=s > 0)
