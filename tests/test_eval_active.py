@@ -196,7 +196,9 @@ def test_product_defaults_are_the_commands_defaults() -> None:
     assert _setup(args, ()) == product_defaults()
     d = product_defaults().report()
     assert d["positions"] == 50 and d["runs"] == 10 and d["paper"] is False
-    assert (d["virtual_headings"], d["features"], d["j"], d["particles"], d["n_actions"]) == (5, 5, 10, 150, 22)
+    assert (d["virtual_headings"], d["features"], d["j"], d["particles"], d["n_actions"]) == (5, 20, 10, 150, 22)
+    # the simulated service's map (config/sim.toml): both channels, 5 disparity features
+    assert d["channels"] == ["intensity", "disparity"] and d["disparity_features"] == 5
     assert d["filter"] == {"global_proposal_fraction": 0.5}
     assert d["motion"] == {"min_sigma_xy": 0.01, "min_sigma_theta": pytest.approx(math.radians(0.5))}
 

@@ -142,8 +142,9 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
     motion model's settings. ``experiment``: any other :class:`ActiveSetup` field (world,
     positions, runs, movements, seed, ...), or a method field to override."""
     method: dict[str, Any] = {
-        "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 5, "virtual_step_deg": 3.0, "features": 5,
-        "preprocess": "none", "channels": ("intensity",), "sensor_model": "nearest_neighbour",
+        "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 5, "virtual_step_deg": 3.0, "features": 20,
+        "disparity_features": 5, "preprocess": "none", "channels": ("intensity", "disparity"),
+        "sensor_model": "nearest_neighbour",
         "sensor": paper_sensor_model(), "interpolation": InterpolationConfig(), "particles": 150, "inject": 0.0,
         "active": paper_active_vision(),
         "filter": {"global_proposal_fraction": 0.5},
@@ -154,8 +155,8 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
 
 #: The paper's section 6.1 configuration (:func:`paper_setup`): the settings `--paper` fixes.
 PAPER_METHOD: dict[str, Any] = {
-    "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 1, "features": 5, "preprocess": "none",
-    "channels": ("intensity",), "sensor_model": "nearest_neighbour", "particles": 150,
+    "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 1, "features": 5, "disparity_features": None,
+    "preprocess": "none", "channels": ("intensity",), "sensor_model": "nearest_neighbour", "particles": 150,
 }
 
 

@@ -105,7 +105,8 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
     "floor_theta": lambda s: round(math.degrees(s.motion_config().min_sigma_theta), 9),
 }
 #: The options `--paper` fixes (:data:`services.evaluation.active_setup.PAPER_METHOD`).
-_PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "preprocess",
+_PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "disparity_features",
+                                 "preprocess",
                                  "channels", "sensor_model", "j", "particles", "actions")
 #: Method options mapped one to one onto an ActiveSetup field.
 _FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
