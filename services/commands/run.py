@@ -151,6 +151,7 @@ def run_daemon(args: argparse.Namespace) -> int:
     from services.sim_launcher import SimProcess, ensure_sim_map, needs_sim, resolve_auto
 
     cfg, cfg_path, reason = choose_config(args.config)
+    cfg = recording_config(cfg, getattr(args, "record", None))
     logging.getLogger().setLevel(cfg.logging.level)
     if cfg.endpoints.curve.enabled:  # unreadable keys: one line now, before anything starts
         load_server_keys(cfg.endpoints.curve)
@@ -177,7 +178,7 @@ def run_daemon(args: argparse.Namespace) -> int:
                 info = sim.start()
                 cfg = resolve_auto(cfg, info)
                 truth = info.truth
-            daemon = Daemon(cfg, amap, truth_endpoint=truth)
+            daemon = Daemon(cfg, amap, truth_endpoint=truth, recorder=recorder(cfg, amap))
             try:
                 daemon.start()
             except OSError as exc:
@@ -208,6 +209,46 @@ def run_daemon(args: argparse.Namespace) -> int:
             log.info("simulator stopped (status %s)", code)
 
 
+def recording_config(cfg: Any, record: str | None) -> Any:
+    """``cfg`` with ``--record FILE`` applied (recording on, to FILE), the viz extra checked
+    and, when recording, a seed drawn for the filter if it has none (so that the recording
+    can be replayed with the service's seed; logged and stored in the file)."""
+    if record is not None:
+        path = Path(record).expanduser()
+        if path.suffix != ".mcap":
+            raise LinoLocError(f"--record {record}: the file name must end in .mcap")
+        cfg = cfg.model_copy(update={"recording": cfg.recording.model_copy(
+            update={"enabled": True, "path": path})})
+    if not cfg.recording.enabled:
+        return cfg
+    from services.recording.channels import require_viz
+
+    require_viz("recording (lino-loc run --record, [recording] enabled)")
+    if cfg.localizer.filter.seed is None:
+        seed = int.from_bytes(os.urandom(4), "little")
+        log.info("recording: the filter's seed is %d (localizer.filter.seed)", seed)
+        filt = cfg.localizer.filter.model_copy(update={"seed": seed})
+        cfg = cfg.model_copy(update={"localizer": cfg.localizer.model_copy(update={"filter": filt})})
+    return cfg
+
+
+def recorder(cfg: Any, amap: Any) -> Any:
+    """The session's recorder (``Recorder.off()`` unless ``[recording] enabled``), with the
+    metadata a replay needs: the configuration, the seed, the map's checksum."""
+    from services.recording.recorder import Recorder
+    from services.status import map_info
+
+    if not cfg.recording.enabled:
+        return Recorder.off()
+    info = map_info(amap, cfg.map.path)
+    return Recorder(cfg.recording, {
+        "config": cfg.model_dump_json(), "seed": str(cfg.localizer.filter.seed),
+        "map_checksum": str(info.checksum), "map_path": info.path,
+        "has_disparity": str("disparity" in getattr(amap, "channels", {})).lower(),
+        "started": str(time.time()),
+    })
+
+
 def _watch_sim(sim: Any, daemon: Any, died: threading.Event, period: float = 0.5) -> None:
     """Stop the daemon when the child simulator exits on its own (not at our shutdown)."""
     while not daemon.stopping:
@@ -230,4 +271,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--config", metavar="FILE", help="TOML configuration (see config/lino.toml)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="record the session into this MCAP file (docs/recording.md; needs the viz extra)")
     p.set_defaults(func=run_daemon)
