@@ -30,7 +30,10 @@ PNG_LEVEL = 1
 
 
 def encode_png(image: NDArray[np.uint8]) -> bytes:
-    """PNG bytes of an 8-bit grey (H, W) or colour (H, W, 3) image (OpenCV's encoder)."""
+    """PNG bytes of an 8- or 16-bit grey (H, W) or colour (H, W, 3) image (OpenCV's encoder);
+    LinoLocError for another type (PNG would not hold it exactly)."""
+    if image.dtype not in (np.uint8, np.uint16):
+        raise LinoLocError(f"a camera image of type {image.dtype} has no lossless PNG (uint8 or uint16)")
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
     if not ok:
         raise LinoLocError(f"PNG encoding failed for an image of shape {image.shape}")

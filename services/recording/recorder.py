@@ -273,7 +273,9 @@ class Recorder:
                 log.warning("recording: a %s event could not be encoded (skipped, counted as "
                             "dropped; logged once): %s", kind, exc)
             self.dropped += 1
-            return
+            if kind != "frame":
+                return
+            messages = tm.input_messages(args[3])  # the call itself, without its images
 
         def write(f: Any) -> None:
             for topic, log_ns, data in messages:
@@ -297,7 +299,7 @@ class Recorder:
 
 def _messages(kind: str, args: list[Any]) -> tm.Messages:
     """The topic messages of one queued event."""
-    if kind == "frame":
+    if kind == "frame":  # the images first: a replay reads a frame's images, then its input
         stamp, left, disparity, record = args
         return tm.frame_messages(stamp, left, disparity) + tm.input_messages(record)
     if kind == "input":
