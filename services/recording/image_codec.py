@@ -3,7 +3,7 @@
 
 Lossless because a replay must give the filter the very pixels the service saw (a JPEG would
 change the features of eq. 1 and so the poses); PNG of an 8-bit grey 320 x 240 image is about
-half its raw size and is drawn by every image viewer.
+half its raw size and is drawn by every image viewer (Foxglove's Image panel among them).
 
 Disparity (float32 pixels, NaN = no value, ``drivers.interfaces.StereoFrame``) becomes
 ``16UC1`` with ``v = d * DISPARITY_SCALE`` and ``v = 0`` for no value: exact for the block
@@ -24,9 +24,11 @@ from lino_loc.errors import LinoLocError
 
 #: Disparity units per pixel in a 16UC1 disparity image (1/32 pixel steps).
 DISPARITY_SCALE = 32.0
-#: PNG compression level (OpenCV's 0-9): 1 is several times faster than the default 3 for
-#: a few per cent more bytes on camera images.
-PNG_LEVEL = 1
+#: PNG compression (OpenCV's level 0-9 and zlib strategy): level 1 with Huffman coding only
+#: is the fastest and the smallest of those tried on the simulated camera's 320 x 240 images
+#: (about 3 ms and 35 kB a frame, against 5-8 ms and 42 kB for levels 1-3 with the default
+#: strategy; benchmarks/bench_recording.py measures the whole recorder).
+PNG_PARAMS = (cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY)
 
 
 def encode_png(image: NDArray[np.uint8]) -> bytes:
@@ -34,7 +36,7 @@ def encode_png(image: NDArray[np.uint8]) -> bytes:
     LinoLocError for another type (PNG would not hold it exactly)."""
     if image.dtype not in (np.uint8, np.uint16):
         raise LinoLocError(f"a camera image of type {image.dtype} has no lossless PNG (uint8 or uint16)")
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image), list(PNG_PARAMS))
     if not ok:
         raise LinoLocError(f"PNG encoding failed for an image of shape {image.shape}")
     return buf.tobytes()
