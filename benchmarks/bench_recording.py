@@ -7,8 +7,9 @@ the shared machine hits both alike):
 
 - ``cpu_ms_per_frame``: the daemon process's CPU time (utime + stime of all its threads:
   the loop, the device threads, the recorder's writer thread) per pose published, over a
-  window of ``--seconds`` after ``--warmup``; median of ``--repeat`` runs per mode, and the
-  difference on - off (what recording costs per frame);
+  window of ``--seconds`` after ``--warmup``; median of ``--repeat`` runs per mode, the
+  difference of the medians on - off (what recording costs per frame), and the differences
+  of each off/on pair run back to back (``paired``);
 - ``pose_rate_hz`` per mode (recording must not slow the loop) and the recorder's
   ``dropped`` events;
 - ``mb_per_min``: megabytes the recording grew per minute of service (status
@@ -140,7 +141,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = {
         "settings": {"width": args.width, "height": args.height, "fps": args.fps,
                      "product_map": args.product_map, "seconds": args.seconds, "repeat": args.repeat},
-        "cpu_ms_per_frame": {"off": off, "on": on, "recording": None if off is None or on is None else on - off},
+        "cpu_ms_per_frame": {"off": off, "on": on, "recording": None if off is None or on is None else on - off,
+                             "paired": [b["cpu_ms_per_frame"] - a["cpu_ms_per_frame"]
+                                        for a, b in zip(runs["off"], runs["on"], strict=True)]},
         "pose_rate_hz": {m: _median(runs[m], "pose_rate_hz") for m in runs},
         "mb_per_min": _median(runs["on"], "mb_per_min"),
         "dropped": [r.get("dropped") for r in runs["on"]],

@@ -52,6 +52,9 @@ log = logging.getLogger("lino_loc.replay")
 #: Frames kept waiting for their /localizer/input record (the recorder writes a frame's
 #: images just before it).
 IMAGE_CACHE = 64
+#: Sections of the recorded configuration a replay leaves at their defaults: the sockets (and
+#: CURVE key files of the robot), the saved pose, the log level.
+REPLAY_IGNORES = ("endpoints", "persistence", "logging")
 #: Topics a replay's output copies from the recording unchanged.
 COPIED = ("/camera/image", "/camera/disparity", "/odometry", "/head/state", "/localizer/input",
           "/truth", "/truth/pose")
@@ -94,7 +97,15 @@ def replay_config(rec_meta: dict[str, Any], config: Any | None, seed: int | None
         if "config" not in rec_meta:
             raise LinoLocError(f"{path}: no recorded configuration: give --config")
         recorded = rec_meta["config"]
-        config = ServiceConfig.model_validate(json.loads(recorded) if isinstance(recorded, str) else recorded)
+        data = dict(json.loads(recorded) if isinstance(recorded, str) else recorded)
+        for section in REPLAY_IGNORES:  # the robot's sockets and key files are not the replay's
+            data.pop(section, None)
+        try:
+            config = ServiceConfig.model_validate(data)
+        except ValueError as exc:
+            first = str(exc).splitlines()[1:3]
+            raise LinoLocError(f"{path}: the recorded configuration does not validate here "
+                               f"({' '.join(x.strip() for x in first)}): give --config") from None
     if seed is None:
         seed = config.localizer.filter.seed
     if seed is None:

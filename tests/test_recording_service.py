@@ -173,3 +173,23 @@ def test_a_kill_9_leaves_a_file_that_reads_up_to_the_last_second(sessions: dict[
     assert s.kill_time - 1.0 <= last <= s.kill_time + 0.1, (s.kill_time, last, rec.truncated)
     out = _replay(str(s.recording), "--out", str(tmp_path / "k.mcap"))
     assert out["poses"] > 0 and out["service"]["bit_identical"], out
+
+
+def test_another_configuration_replays_the_same_inputs(sessions: dict[str, Session], tmp_path: Path) -> None:
+    """300 particles instead of 1000, the same frames: as many updates, other poses, and the
+    output's particle sets have the new size."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    s = sessions["clean"]
+    base = _replay(str(s.recording), "--out", str(tmp_path / "base.mcap"))
+    cfg = tmp_path / "few.toml"
+    text = config_text(tmp_path, pub="tcp://127.0.0.1:1", rep="tcp://127.0.0.1:2", state=tmp_path / "s.json")
+    cfg.write_text(text.replace("n_particles = 1000", "n_particles = 300\nseed = 11"))
+    few = _replay(str(s.recording), "--config", str(cfg), "--out", str(tmp_path / "few.mcap"))
+    assert few["seed"] == 11 and few["updates"] == base["updates"] and few["poses"] == base["poses"]
+    assert not few["service"]["bit_identical"]
+    with (tmp_path / "few.mcap").open("rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        sizes = {len(m.poses) for _s, _c, _r, m in reader.iter_decoded_messages(topics=["/particles"])}
+    assert sizes == {300}
