@@ -44,7 +44,15 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.sim_service_rig import Rig, Settings, Stream, cpu_seconds, env, exit_on_sigterm, stop  # noqa: E402
+from benchmarks.sim_service_rig import (  # noqa: E402
+    Rig,
+    Settings,
+    Stream,
+    cpu_seconds,
+    env,
+    exit_on_sigterm,
+    stop,
+)
 
 
 def _start_daemon(rig: Rig, record: Path | None) -> subprocess.Popen[bytes]:
