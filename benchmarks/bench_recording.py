@@ -104,8 +104,10 @@ def handover_us(n: int = 2000) -> float:
                       state="tracking", pan=0.0, n_particles=1000, latency_ms=1.0)
     particles = np.zeros((1000, 3))
     times = []
+    rec = r.Recorder(r.RecordingConfig(path=Path("/nonexistent/x.mcap")))
     for i in range(n):
-        rec = r.Recorder(r.RecordingConfig(path=Path("/nonexistent/x.mcap"))) if i % 20 == 0 else rec
+        if i % 20 == 0:  # a fresh queue (its writer is not started): no put is refused
+            rec = r.Recorder(r.RecordingConfig(path=Path("/nonexistent/x.mcap")))
         t = time.perf_counter()
         rec.frame(float(i), left, disp, delta=[0.0, 0.0, 0.0], pan=0.0, moving=False, image=True, disparity=True)
         rec.pose(msg)
