@@ -299,8 +299,8 @@ class Daemon:
         self.publisher = open_publisher(self.ctx, ep)
         self.poses = PosePublisher(self.publisher, self.cfg.publish, self.localizer.particles)
         handlers = ControlHandlers(
-            self.commands, tap(self.localizer, self.recorder, "control"), self.poses, self.status, self.active, self.saver,
-            self.status.map_info.checksum,
+            self.commands, tap(self.localizer, self.recorder, "control"), self.poses, self.status,
+            self.active, self.saver, self.status.map_info.checksum,
         )
         try:
             self.control = ControlServer(self.ctx, ep.rep, handlers, ep.curve)
