@@ -1,4 +1,9 @@
-"""`lino-loc run [--config FILE]`: the localization daemon (services.daemon).
+"""`lino-loc run [--config FILE] [--record FILE.mcap]`: the localization daemon (services.daemon).
+
+``--record FILE.mcap`` records the session into that MCAP file (``[recording]`` turned on for
+it; needs the ``viz`` extra, else one line naming it, exit 2). When recording and the filter
+has no seed, one is drawn and logged, and stored in the file with the configuration
+(:func:`recording_config`, :func:`recorder`; docs/recording.md).
 
 Which robot:
 - ``--config FILE``: that configuration (plus ``LINO_LOC__*`` environment overrides).
@@ -120,7 +125,7 @@ def echo_command(pub: str, curve: Any) -> str:
     return cmd
 
 
-def banner(cfg: Any, reason: str, sim: Any) -> str:
+def banner(cfg: Any, reason: str, sim: Any, recording: Path | None = None) -> str:
     ep = cfg.endpoints
     lines = [
         "",
@@ -134,6 +139,8 @@ def banner(cfg: Any, reason: str, sim: Any) -> str:
     if sim is not None and sim.info is not None:
         i = sim.info
         lines.append(f"  simulator  pid {sim.proc.pid}: head {i.head}, odometry {i.odometry}, camera {i.camera}")
+    if recording is not None:
+        lines.append(f"  recording  {recording}   replay it: lino-loc replay {recording}")
     if ep.curve.enabled:
         lines.append(f"  CURVE      on: only clients whose public key is in {ep.curve.authorized_clients}")
     lines += [
@@ -198,7 +205,7 @@ def run_daemon(args: argparse.Namespace) -> int:
         sim_died = threading.Event()
         if sim is not None:
             threading.Thread(target=_watch_sim, args=(sim, daemon, sim_died), name="sim-watch", daemon=True).start()
-        print(banner(cfg, reason, sim), file=sys.stderr, flush=True)
+        print(banner(cfg, reason, sim, daemon.recorder.path), file=sys.stderr, flush=True)
         code = daemon.run()
         return 1 if sim_died.is_set() else code
     finally:
