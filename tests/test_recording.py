@@ -291,3 +291,15 @@ def test_a_full_disk_stops_recording_says_why_and_nothing_raises(tmp_path: Path)
     assert info is not None and info.error is not None and "No space left" in info.error
     rec.frame(99.0, left, None, delta=[0.0, 0.0, 0.0], pan=0.0)  # after the failure: counted, no raise
     assert rec.info().dropped >= 1
+
+
+def test_a_foxglove_sdk_channel_takes_the_same_topic_and_schema() -> None:
+    import foxglove
+
+    from services.recording.channels import sdk_channel_args
+
+    for topic in ("/pose", "/pose/estimate"):
+        args = sdk_channel_args(topic)
+        ch = foxglove.Channel(**args)
+        assert ch.topic() == topic and ch.schema_name() == TOPICS[topic].schema_name
+        ch.close()

@@ -215,3 +215,15 @@ def stamp_ns(stamp: float) -> int:
     """Nanoseconds since the epoch of a stamp in seconds (an MCAP log time; the key that ties
     a /localizer/input record to its frame's images)."""
     return int(round(float(stamp) * 1e9))
+
+
+def sdk_channel_args(topic: str) -> dict[str, Any]:
+    """``foxglove.Channel(**sdk_channel_args(topic))``: the same topic, encoding and schema on
+    a foxglove-sdk channel (a live view, ``foxglove.start_server``), so that a live session and
+    a recording look alike to Foxglove; messages are then the bytes of
+    :mod:`services.recording.topic_messages` (``channel.log(data, log_time=ns)``)."""
+    import foxglove
+
+    t = TOPICS[topic]
+    schema = foxglove.Schema(name=t.schema_name, encoding=t.schema_encoding, data=schema_bytes(topic))
+    return {"topic": topic, "message_encoding": t.encoding, "schema": schema}
