@@ -2,7 +2,7 @@
 threads, its loop) on the in-process fake devices of ``test_frame_errors`` and the tiny map of
 ``test_localizer``, recording; belief changes from the control socket go into the recording
 in their place among the frames, and the replay of the recorded calls gives the daemon's
-poses bit for bit. A recording that cannot be written (a bad path) is reported in the status
+poses bit for bit, dead reckoning included. A recording that cannot be written (a bad path) is reported in the status
 and the daemon goes on."""
 
 from __future__ import annotations
@@ -42,7 +42,21 @@ class _Camera8(_Camera):
         return dataclasses.replace(f, left=img)
 
 
-def _daemon(tmp_path: Path, path: Path) -> tuple[Daemon, zmq.Context[Any], str, str]:
+class _StallingCamera(_Camera8):
+    """Frames for 1 s, none for the next 2 s (the daemon dead-reckons), then frames again."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.t0 = time.monotonic()
+
+    def read(self, timeout: float | None = None) -> Any:
+        if 1.0 < time.monotonic() - self.t0 < 3.0:
+            time.sleep(0.05)
+            return None
+        return super().read(timeout)
+
+
+def _daemon(tmp_path: Path, path: Path, camera: Any = None) -> tuple[Daemon, zmq.Context[Any], str, str]:
     m, _, _ = _world()
     pub, rep = f"ipc://{tmp_path}/pub", f"ipc://{tmp_path}/rep"
     cfg = ServiceConfig(
@@ -54,7 +68,7 @@ def _daemon(tmp_path: Path, path: Path) -> tuple[Daemon, zmq.Context[Any], str, 
         publish={"truth": False},
     )
     ctx: zmq.Context[Any] = zmq.Context()
-    factories = DeviceFactories(camera=_Camera8, head=_Head, odometry=_Odometry)
+    factories = DeviceFactories(camera=camera or _Camera8, head=_Head, odometry=_Odometry)
     recorder = Recorder(RecordingConfig(path=path), {"seed": "3"})
     return Daemon(cfg, m, device_factories=factories, context=ctx, recorder=recorder), ctx, pub, rep
 
@@ -132,3 +146,28 @@ def test_a_recording_that_cannot_be_written_is_reported_and_the_daemon_goes_on(t
         loop.join(20)
         sub.close(0)
         ctx.term()
+
+
+def test_dead_reckoning_is_recorded_and_replays_bit_for_bit(tmp_path: Path) -> None:
+    from services.replay import _Session
+
+    path = tmp_path / "dr.mcap"
+    daemon, ctx, pub, rep = _daemon(tmp_path, path, _StallingCamera)
+    daemon.start()
+    loop = threading.Thread(target=daemon.run, name="loop")
+    loop.start()
+    try:
+        time.sleep(4.0)
+    finally:
+        daemon.request_stop()
+        loop.join(20)
+        ctx.term()
+    rec = Recording([path])
+    msgs = list(read_recording([path], rec))
+    kinds = [json.loads(m.data)["kind"] for m in msgs if m.topic == "/localizer/input"]
+    assert kinds.count("predict") >= 5 and kinds[-1] == "update", kinds
+    session = _Session(rec, daemon.cfg, daemon.localizer.map, None, False)
+    for m in msgs:
+        session.on_message(m)
+    same = session.compare()
+    assert same is not None and same["bit_identical"] and session.result.predicts == kinds.count("predict")
