@@ -2,8 +2,8 @@
 threads, its loop) on the in-process fake devices of ``test_frame_errors`` and the tiny map of
 ``test_localizer``, recording; belief changes from the control socket go into the recording
 in their place among the frames, and the replay of the recorded calls gives the daemon's
-poses bit for bit, dead reckoning included. A recording that cannot be written (a bad path) is reported in the status
-and the daemon goes on."""
+poses bit for bit, dead reckoning included. A recording that cannot be written (a bad path)
+is reported in the status and the daemon goes on."""
 
 from __future__ import annotations
 
