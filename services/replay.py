@@ -20,8 +20,9 @@ again from the raw ``/odometry`` and ``/head/state`` streams with the daemon's o
 head-settle rule, in the order the recorder received them. What differs from the service:
 the order of an odometry increment and a frame as the threads interleaved them (an increment
 that reached the buffer after the loop took the frame goes into the next action in the
-service; the recorder receives it from the odometry thread, with the same race) and a
-changed ``active_vision.settle_s``. docs/recording.md gives the measured difference.
+service; the recorder receives it from the odometry thread, with the same race: a split
+increment's two parts round differently from the whole) and a changed
+``active_vision.settle_s``. docs/recording.md says what was measured.
 
 Output: ``out`` (MCAP, the channel layer of :mod:`services.recording.channels`: the inputs
 copied, the replay's poses, ellipses, particles and transforms) and the TUM trajectory
