@@ -68,12 +68,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run the Localizer on a recording (lino-loc run --record) as fast as it can",
         description="Replay a recording's inputs through the Localizer: the service's poses with "
         "its configuration and seed, or another configuration on the same inputs. Writes OUT "
-        "(MCAP) and OUT.tum (TUM trajectory, for evo).",
+        "(MCAP) and, beside it, OUT.tum (the TUM trajectory, for evo).",
     )
     p.add_argument("files", nargs="+", metavar="FILE", help="the recording (its parts in order)")
     p.add_argument("--config", metavar="F", help="replay with this configuration (default: the recorded one)")
     p.add_argument("--seed", type=int, metavar="S", help="the filter's seed (default: the recorded one)")
-    p.add_argument("--out", metavar="OUT", help="output MCAP (default FILE-replay.mcap); the TUM file is OUT.tum")
+    p.add_argument("--out", metavar="OUT.mcap",
+                   help="output MCAP (default FILE-replay.mcap); the TUM trajectory beside it, OUT.tum")
     p.add_argument("--recompose", action="store_true",
                    help="compose the odometry actions and pans again from the raw streams")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
