@@ -213,10 +213,13 @@ class Recorder:
         if not self.enabled:
             return None
         f = self._file
-        files = f.files if f is not None else []
+        try:  # read from the status thread while the writer writes: plain values only
+            files = list(f.files) if f is not None else []
+            megabytes = round((f.bytes_written if f is not None else 0) / 1e6, 3)
+        except Exception:  # noqa: BLE001 - the status must never fail on the recorder
+            files, megabytes = [], 0.0
         return RecordingInfo(
-            file=str(files[-1] if files else self.path), files=len(files),
-            megabytes=round((f.bytes_written if f is not None else 0) / 1e6, 3),
+            file=str(files[-1] if files else self.path), files=len(files), megabytes=megabytes,
             messages=self.messages, dropped=self.dropped, error=self.error,
         )
 
@@ -230,8 +233,13 @@ class Recorder:
         """Write what is queued, finish the file (idempotent)."""
         if self._thread is None:
             return
-        self._queue.put(None)
+        try:
+            self._queue.put(None, timeout=timeout)  # after what is queued
+        except queue.Full:
+            log.error("recording: the writer did not drain its queue in %.0f s", timeout)
         self._thread.join(timeout)
+        if self._thread.is_alive():
+            log.error("recording: the writer did not finish %s in %.0f s", self.path, timeout)
         self._thread = None
 
     def _run(self) -> None:

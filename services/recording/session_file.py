@@ -40,6 +40,7 @@ class SessionFile:
         self.part = 0
         self.files: list[Path] = []
         self.bytes_closed = 0  # bytes of the finished parts
+        self._flushed = 0  # bytes of the open part at its last flush
         self._stream: IO[bytes] | None = None
         self._writer: Any = None
         self._ids: dict[str, int] = {}
@@ -70,8 +71,9 @@ class SessionFile:
 
     @property
     def bytes_written(self) -> int:
-        """Bytes in the files so far (the open part as flushed)."""
-        return self.bytes_closed + (self._stream.tell() if self._stream is not None else 0)
+        """Bytes in the files so far, the open part as of its last flush (plain integers: safe
+        to read from another thread)."""
+        return self.bytes_closed + self._flushed
 
     def flush(self) -> None:
         """End the chunk, flush to the OS; rotate when the part reached ``rotate_mb``."""
@@ -79,23 +81,21 @@ class SessionFile:
             return
         self._writer.flush()
         size = self._stream.tell()
+        self._flushed = size
         if self.rotate_bytes and size >= self.rotate_bytes:
-            self._close()
-            self.bytes_closed += size
+            self.close()
             self.part += 1
             self._open()
 
-    def _close(self) -> None:
+    def close(self) -> None:
+        """Finish the file (summary and footer: ``mcap.reader.make_reader`` reads it)."""
+        if self._stream is None:
+            return
         if self._writer is not None:
             self._writer.finish()
             self._writer = None
-        if self._stream is not None:
-            self._stream.close()
-            self._stream = None
-
-    def close(self) -> None:
-        """Finish the file (summary and footer: ``mcap.reader.make_reader`` reads it)."""
-        if self._stream is not None:
-            size = self._stream.tell()
-            self._close()
-            self.bytes_closed += max(0, size)
+        size = self._stream.tell()
+        self._stream.close()
+        self._stream = None
+        self.bytes_closed += size
+        self._flushed = 0
