@@ -196,7 +196,7 @@ class _Session:
             self._update(r)
         elif kind == "predict":
             delta = self.odometry.take_until(r["stamp"])[0] if self.recompose else np.asarray(r["delta"])
-            self._survive(lambda: self.localizer.predict_only(delta, stamp=r["stamp"]), r["stamp"], None)
+            self._survive(lambda: self.localizer.predict_only(delta, stamp=r["stamp"]), r["stamp"], None, True)
             self.result.predicts += 1
         elif r.get("cause") != "failures":
             self.result.belief_changes += 1
@@ -232,14 +232,15 @@ class _Session:
         self._survive(lambda: self.localizer.update(delta, pan, image, disparity, stamp=stamp), stamp, pan)
         self.result.updates += 1
 
-    def _survive(self, call: Any, stamp: float, pan: float | None) -> None:
+    def _survive(self, call: Any, stamp: float, pan: float | None, dead_reckoning: bool = False) -> None:
         """One call, its pose kept and written; failures as the daemon's loop counts them."""
         from services.daemon import RESET_AFTER_FAILED_UPDATES
         from services.messages import PoseMessage
 
         try:
             est = call()
-            msg = PoseMessage.from_estimate(est, stamp=stamp, seq=len(self.result.poses), pan=pan, now=stamp)
+            msg = PoseMessage.from_estimate(est, stamp=stamp, seq=len(self.result.poses), pan=pan,
+                                            dead_reckoning=dead_reckoning, now=stamp)
         except Exception as exc:  # noqa: BLE001 - as the daemon: count, go on, reset after several
             self.result.errors += 1
             self.failed_in_a_row += 1
