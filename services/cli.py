@@ -36,6 +36,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.commands.echo",
     "services.commands.keys_cmd",
     "services.commands.run",
+    "services.commands.replay_cmd",
     "services.commands.sim",
 )
 

@@ -14,6 +14,7 @@
                        CURVE keys (services.curve_auth.CurveConfig), required off loopback
     [publish]          services.publisher.PublishConfig: particle throttling, truth (simulation)
     [persistence]      services.persistence.PersistenceConfig: state file (last pose), save period
+    [recording]        services.recording.recorder.RecordingConfig: the session's MCAP file
     [logging]          level
 
 Sources, highest priority first: environment variables ``LINO_LOC__SECTION__FIELD``
@@ -58,6 +59,7 @@ from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
 from services.curve_auth import CurveConfig, curve_problem
 from services.persistence import PersistenceConfig
 from services.publisher import PublishConfig
+from services.recording.recorder import RecordingConfig
 from services.relay_publisher import RelayConfig
 
 ENV_PREFIX = "LINO_LOC__"
@@ -273,6 +275,7 @@ class ServiceConfig(BaseSettings):
     endpoints: EndpointsConfig = Field(default_factory=EndpointsConfig)
     publish: PublishConfig = Field(default_factory=PublishConfig)
     persistence: PersistenceConfig = Field(default_factory=PersistenceConfig)
+    recording: RecordingConfig = Field(default_factory=RecordingConfig)
     logging: LoggingConfig = Field(default_factory=LoggingConfig)
 
     @classmethod

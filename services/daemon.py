@@ -11,6 +11,8 @@ an object of its own:
 - active vision and the head-settle rule (:mod:`services.active_head`);
 - the saved pose (:mod:`services.persistence`);
 - the simulation-only truth relay (:mod:`services.truth_relay`);
+- the session's recording (:mod:`services.recording.recorder`: the loop, the odometry, head
+  and truth threads hand it what they get and what the Localizer was given, never waiting);
 - systemd notifications (:mod:`services.sd_notify`).
 
 Threads::
@@ -102,6 +104,7 @@ from services.persistence import (
     refusal,
 )
 from services.publisher import AnyPublisher, PosePublisher, RateLimiter, open_publisher
+from services.recording.recorder import Recorder, tap
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
 from services.truth_relay import TruthRelay
 
@@ -240,8 +243,10 @@ class Daemon:
         device_factories: DeviceFactories | None = None,
         notifier: sd_notify.Notifier | None = None,
         context: zmq.Context[Any] | None = None,
+        recorder: Recorder | None = None,
     ) -> None:
         self.cfg = cfg
+        self.recorder = recorder or Recorder.off()
         self.truth_endpoint = truth_endpoint if cfg.publish.truth else None
         self.has_disparity = "disparity" in getattr(amap, "channels", {})
         factories = device_factories or default_device_factories(cfg, self.has_disparity)
@@ -253,6 +258,8 @@ class Daemon:
         self.mailbox: FrameMailbox[StereoFrame] = FrameMailbox()
         self.odometry = OdometryBuffer()
         self.heads = HeadHistory()
+        if self.recorder.enabled:
+            self.odometry.listener, self.heads.listener = self.recorder.odometry, self.recorder.head
         head_worker = HeadWorker(factories["head"], self.heads)
         head_worker.command(0.0, 0.0)  # start looking ahead (sent once its thread runs)
         self.workers: dict[str, DeviceWorker[Any]] = {
@@ -279,7 +286,8 @@ class Daemon:
             self.mailbox, self.workers, map_info(amap, cfg.map.path), simulated=cfg.simulated,
             sources=StatusSources(self._state, lambda: self.localizer.appearance_changes,
                                   self.active.info, self._persistence_info, self._pose_port_info,
-                                  lambda: self.control.refused_handshakes if self.control else 0),
+                                  lambda: self.control.refused_handshakes if self.control else 0,
+                                  self.recorder.info),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
 
@@ -291,8 +299,8 @@ class Daemon:
         self.publisher = open_publisher(self.ctx, ep)
         self.poses = PosePublisher(self.publisher, self.cfg.publish, self.localizer.particles)
         handlers = ControlHandlers(
-            self.commands, self.localizer, self.poses, self.status, self.active, self.saver,
-            self.status.map_info.checksum,
+            self.commands, tap(self.localizer, self.recorder, "control"), self.poses, self.status,
+            self.active, self.saver, self.status.map_info.checksum,
         )
         try:
             self.control = ControlServer(self.ctx, ep.rep, handlers, ep.curve)
@@ -300,6 +308,7 @@ class Daemon:
             self.publisher.close()
             raise
         self._remove_leftovers()
+        self.recorder.start()
         self.workers["odometry"].start()  # its counters may decide the initial belief
         self._initial_belief()
         for name, w in self.workers.items():
@@ -308,7 +317,8 @@ class Daemon:
         self.control.start()
         self.saver.start()
         if self.truth_endpoint:
-            self.truth = TruthRelay(self.ctx, self.truth_endpoint, self.publisher)
+            self.truth = TruthRelay(self.ctx, self.truth_endpoint, self.publisher,
+                                    self.recorder.truth if self.recorder.enabled else None)
             self.truth.start()
         self.active.start()
         self.notifier.ready(status_line(None, ep.pub, False))
@@ -328,9 +338,10 @@ class Daemon:
         deviations raised to :func:`restore_min_std` of its age; else global localization,
         the reason logged in one line."""
         p = self.cfg.persistence
+        belief = tap(self.localizer, self.recorder, "start")
         saved = load_state(p.state_file) if p.restore else None
         if saved is None:
-            self.localizer.start_global()
+            belief.start_global()
             self.initial_belief = "global localization: " + (
                 "no saved pose" if p.restore else "persistence.restore = false")
             log.info("initial belief: %s", self.initial_belief)
@@ -343,7 +354,7 @@ class Daemon:
             counters,
         ))  # fmt: skip
         if why is not None:
-            self.localizer.start_global()
+            belief.start_global()
             self.initial_belief = f"global localization: the saved pose was refused: {why}"
             log.warning("initial belief: global localization; saved pose in %s refused: %s",
                         p.state_file, why)  # fmt: skip
@@ -351,7 +362,7 @@ class Daemon:
         age = max(0.0, now - saved.stamp)
         cov = saved.cov().copy()
         cov[np.diag_indices(3)] = np.maximum(np.diag(cov), np.square(restore_min_std(age)))
-        self.localizer.set_pose(saved.mean(), cov, confirmed=False)
+        belief.set_pose(saved.mean(), cov, confirmed=False)
         self.initial_belief = (
             f"the saved pose ({saved.pose.x:.2f}, {saved.pose.y:.2f}, {saved.pose.theta:.2f}), "
             f"{age:.0f} s old, to be confirmed by the views; {board_motion(saved, counters).note}"
@@ -392,6 +403,7 @@ class Daemon:
             w.stop()
         self._save(sync=True)
         self.saver.stop()
+        self.recorder.close()
         if self.truth is not None:
             self.truth.stop()
         if self.publisher is not None:
@@ -444,7 +456,7 @@ class Daemon:
                 log.error("%d updates in a row failed: starting global localization",
                           self._failed_in_a_row)
                 try:
-                    self.localizer.start_global()
+                    tap(self.localizer, self.recorder, "failures").start_global()
                 except Exception:  # noqa: BLE001
                     log.exception("global localization failed too")
 
@@ -459,6 +471,8 @@ class Daemon:
         at_rest = self.active.frame_at_rest(stamp, moving, self.heads.last_motion)
         image = frame.left if at_rest else None
         disparity = frame.disparity if (self.has_disparity and at_rest) else None
+        self.recorder.frame(stamp, frame.left, frame.disparity, delta=delta.tolist(), pan=pan,
+                            moving=moving, image=image is not None, disparity=disparity is not None)
         est = self.localizer.update(delta, pan, image, disparity, stamp=stamp)
         self.status.check_appearance_changes()
         if self.watch.dead_reckoning:
@@ -479,6 +493,7 @@ class Daemon:
         self.watch.dead_reckoning = True
         self.watch.last_update_stamp = now  # also when the prediction fails: once a period
         delta, _ = self.odometry.take_until(now)
+        self.recorder.call("predict", now, delta=delta.tolist())
         est = self.localizer.predict_only(delta, stamp=now)
         self._publish_pose(est, now, None)
 
@@ -486,11 +501,14 @@ class Daemon:
         """Publish the pose (and maybe the particles); raises LinoLocError when the estimate
         holds a non-finite value (nothing published: a failed update)."""
         assert self.poses is not None
-        if not self.poses.publish(est, stamp=stamp, pan=pan, dead_reckoning=self.watch.dead_reckoning):
+        msg = self.poses.publish(est, stamp=stamp, pan=pan, dead_reckoning=self.watch.dead_reckoning)
+        if msg is None:
             raise LinoLocError("the estimate holds a non-finite value: no pose published")
+        self.recorder.pose(msg)
         self._failed_in_a_row = 0
         self.status.pose_published(stamp)
         self.poses.publish_particles(stamp)
+        self.recorder.particles(stamp, self.localizer.particles)
 
     def _state(self) -> str:
         est = self.poses.latest()[1] if self.poses is not None else None
@@ -500,6 +518,7 @@ class Daemon:
         assert self.publisher is not None
         msg = self.status.publish()
         self.publisher.publish("status", msg)
+        self.recorder.status(msg)
         self.notifier.status(status_line(msg, self.cfg.endpoints.pub, self.watch.dead_reckoning))
 
     def _save(self, sync: bool) -> SavedState | None:

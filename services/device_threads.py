@@ -158,8 +158,12 @@ class OdometryBuffer:
         self.last_stamp: float | None = None
         #: the board's absolute counters at its latest sample (None: none yet)
         self.counters: BoardCounters | None = None
+        #: called with every batch of increments as it arrives (the recorder; must not block)
+        self.listener: Callable[[list[OdometryIncrement]], None] | None = None
 
     def add(self, increments: list[OdometryIncrement]) -> None:
+        if self.listener is not None:
+            self.listener(increments)
         with self._lock:
             for inc in increments:
                 t1 = float(inc.stamp)
@@ -221,10 +225,14 @@ class HeadHistory:
         self._t: collections.deque[float] = collections.deque(maxlen=maxlen)
         self._s: collections.deque[HeadState] = collections.deque(maxlen=maxlen)
         self.last_motion: float | None = None  # stamp of the last sample that was moving
+        #: called with every reading that is not stale (the recorder; must not block)
+        self.listener: Callable[[HeadState], None] | None = None
 
     def add(self, state: HeadState) -> None:
         if state.stale:
             return
+        if self.listener is not None:
+            self.listener(state)
         with self._lock:
             if self._t and state.stamp < self._t[-1]:
                 return  # out of order

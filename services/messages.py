@@ -406,6 +406,22 @@ class ActiveVisionInfo(BaseModel):
     )
 
 
+class RecordingInfo(BaseModel):
+    """The session's recording (``lino-loc run --record``, ``[recording]``)."""
+
+    model_config = ConfigDict(extra="ignore", json_schema_serialization_defaults_required=True)
+
+    file: str | None = Field(None, description="the MCAP file being written (the latest part)")
+    files: int = Field(0, ge=0, description="parts written so far (size-based rotation)")
+    megabytes: float = Field(0.0, ge=0.0, description="MB written (flushed) so far, all parts")
+    messages: int = Field(0, ge=0, description="messages written")
+    dropped: int = Field(
+        0, ge=0, description="events not recorded because the writer fell behind (its queue was "
+        "full) or had failed; the loop never waits for the recorder"
+    )
+    error: str | None = Field(None, description="why recording stopped (None while it works)")
+
+
 class StatusMessage(_Published):
     """Topic ``status`` (once a second) and the ``status`` reply."""
 
@@ -435,6 +451,7 @@ class StatusMessage(_Published):
     active_vision: ActiveVisionInfo | None = None
     persistence: PersistenceInfo | None = None
     pose_port: PosePortInfo | None = None
+    recording: RecordingInfo | None = None
     control_refused_handshakes: int = Field(
         0, ge=0, description="control connections refused at the handshake since start (no "
         "CURVE keys, a key not authorized, not ZeroMQ)"

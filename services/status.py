@@ -50,6 +50,7 @@ from services.messages import (
     MapInfo,
     PersistenceInfo,
     PosePortInfo,
+    RecordingInfo,
     StatusMessage,
 )
 
@@ -102,6 +103,7 @@ class StatusSources:
     persistence: Callable[[], PersistenceInfo | None] = lambda: None
     pose_port: Callable[[], PosePortInfo | None] = lambda: None
     control_refused_handshakes: Callable[[], int] = lambda: 0
+    recording: Callable[[], RecordingInfo | None] = lambda: None
 
 
 class StatusReporter:
@@ -249,6 +251,7 @@ class StatusReporter:
             persistence=self.sources.persistence(),
             pose_port=self.sources.pose_port(),
             control_refused_handshakes=self.sources.control_refused_handshakes(),
+            recording=self.sources.recording(),
             simulated=self.simulated,
             version=__version__,
         )

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import zmq
@@ -34,8 +35,12 @@ POLL_MS = 200
 class TruthRelay(threading.Thread):
     """SUB ``truth`` of the simulator -> the daemon's PUB socket (module docstring)."""
 
-    def __init__(self, ctx: zmq.Context[Any], endpoint: str, publisher: AnyPublisher) -> None:
+    def __init__(
+        self, ctx: zmq.Context[Any], endpoint: str, publisher: AnyPublisher,
+        listener: Callable[[bytes], None] | None = None,
+    ) -> None:
         super().__init__(name="truth-relay", daemon=True)
+        self.listener = listener  # gets every valid message's JSON (the recorder)
         self.ctx = ctx
         self.endpoint = endpoint
         self.publisher = publisher
@@ -66,6 +71,8 @@ class TruthRelay(threading.Thread):
             TruthMessage.model_validate_json(frames[1])
         except ValueError:
             return False
+        if self.listener is not None:
+            self.listener(frames[1])
         sent = self.publisher.send_frames([b"truth", frames[1]], "truth")
         self.relayed += 1
         return sent

@@ -1,4 +1,9 @@
-"""`lino-loc run [--config FILE]`: the localization daemon (services.daemon).
+"""`lino-loc run [--config FILE] [--record FILE.mcap]`: the localization daemon (services.daemon).
+
+``--record FILE.mcap`` records the session into that MCAP file (``[recording]`` turned on for
+it; needs the ``viz`` extra, else one line naming it, exit 2). When recording and the filter
+has no seed, one is drawn and logged, and stored in the file with the configuration
+(:func:`recording_config`, :func:`recorder`; docs/recording.md).
 
 Which robot:
 - ``--config FILE``: that configuration (plus ``LINO_LOC__*`` environment overrides).
@@ -120,7 +125,7 @@ def echo_command(pub: str, curve: Any) -> str:
     return cmd
 
 
-def banner(cfg: Any, reason: str, sim: Any) -> str:
+def banner(cfg: Any, reason: str, sim: Any, recording: Path | None = None) -> str:
     ep = cfg.endpoints
     lines = [
         "",
@@ -134,6 +139,8 @@ def banner(cfg: Any, reason: str, sim: Any) -> str:
     if sim is not None and sim.info is not None:
         i = sim.info
         lines.append(f"  simulator  pid {sim.proc.pid}: head {i.head}, odometry {i.odometry}, camera {i.camera}")
+    if recording is not None:
+        lines.append(f"  recording  {recording}   replay it: lino-loc replay {recording}")
     if ep.curve.enabled:
         lines.append(f"  CURVE      on: only clients whose public key is in {ep.curve.authorized_clients}")
     lines += [
@@ -151,6 +158,7 @@ def run_daemon(args: argparse.Namespace) -> int:
     from services.sim_launcher import SimProcess, ensure_sim_map, needs_sim, resolve_auto
 
     cfg, cfg_path, reason = choose_config(args.config)
+    cfg = recording_config(cfg, getattr(args, "record", None))
     logging.getLogger().setLevel(cfg.logging.level)
     if cfg.endpoints.curve.enabled:  # unreadable keys: one line now, before anything starts
         load_server_keys(cfg.endpoints.curve)
@@ -177,7 +185,7 @@ def run_daemon(args: argparse.Namespace) -> int:
                 info = sim.start()
                 cfg = resolve_auto(cfg, info)
                 truth = info.truth
-            daemon = Daemon(cfg, amap, truth_endpoint=truth)
+            daemon = Daemon(cfg, amap, truth_endpoint=truth, recorder=recorder(cfg, amap))
             try:
                 daemon.start()
             except OSError as exc:
@@ -197,7 +205,7 @@ def run_daemon(args: argparse.Namespace) -> int:
         sim_died = threading.Event()
         if sim is not None:
             threading.Thread(target=_watch_sim, args=(sim, daemon, sim_died), name="sim-watch", daemon=True).start()
-        print(banner(cfg, reason, sim), file=sys.stderr, flush=True)
+        print(banner(cfg, reason, sim, daemon.recorder.path), file=sys.stderr, flush=True)
         code = daemon.run()
         return 1 if sim_died.is_set() else code
     finally:
@@ -206,6 +214,46 @@ def run_daemon(args: argparse.Namespace) -> int:
         if sim is not None:
             code = sim.stop()
             log.info("simulator stopped (status %s)", code)
+
+
+def recording_config(cfg: Any, record: str | None) -> Any:
+    """``cfg`` with ``--record FILE`` applied (recording on, to FILE), the viz extra checked
+    and, when recording, a seed drawn for the filter if it has none (so that the recording
+    can be replayed with the service's seed; logged and stored in the file)."""
+    if record is not None:
+        path = Path(record).expanduser()
+        if path.suffix != ".mcap":
+            raise LinoLocError(f"--record {record}: the file name must end in .mcap")
+        cfg = cfg.model_copy(update={"recording": cfg.recording.model_copy(
+            update={"enabled": True, "path": path})})
+    if not cfg.recording.enabled:
+        return cfg
+    from services.recording.channels import require_viz
+
+    require_viz("recording (lino-loc run --record, [recording] enabled)")
+    if cfg.localizer.filter.seed is None:
+        seed = int.from_bytes(os.urandom(4), "little")
+        log.info("recording: the filter's seed is %d (localizer.filter.seed)", seed)
+        filt = cfg.localizer.filter.model_copy(update={"seed": seed})
+        cfg = cfg.model_copy(update={"localizer": cfg.localizer.model_copy(update={"filter": filt})})
+    return cfg
+
+
+def recorder(cfg: Any, amap: Any) -> Any:
+    """The session's recorder (``Recorder.off()`` unless ``[recording] enabled``), with the
+    metadata a replay needs: the configuration, the seed, the map's checksum."""
+    from services.recording.recorder import Recorder
+    from services.status import map_info
+
+    if not cfg.recording.enabled:
+        return Recorder.off()
+    info = map_info(amap, cfg.map.path)
+    return Recorder(cfg.recording, {
+        "config": cfg.model_dump_json(), "seed": str(cfg.localizer.filter.seed),
+        "map_checksum": str(info.checksum), "map_path": info.path,
+        "has_disparity": str("disparity" in getattr(amap, "channels", {})).lower(),
+        "started": str(time.time()),
+    })
 
 
 def _watch_sim(sim: Any, daemon: Any, died: threading.Event, period: float = 0.5) -> None:
@@ -230,4 +278,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--config", metavar="FILE", help="TOML configuration (see config/lino.toml)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="record the session into this MCAP file (docs/recording.md; needs the viz extra)")
     p.set_defaults(func=run_daemon)
