@@ -72,9 +72,10 @@ def _mem_mb(pid: int) -> tuple[float, float]:
 
 
 def _config(args: argparse.Namespace, tmp: Path, pub: str, rep: str) -> str:
+    dfeat = getattr(args, "disparity_features", None)
     map_path = Path(args.map_cache).expanduser() / (
-        f"office-tube-75cm-15deg-5f-v{args.virtual_headings}-{args.width}x{args.height}"
-        + ("-disparity" if getattr(args, "disparity", False) else "") + ".npz"
+        f"office-tube-75cm-15deg-{args.features}f-v{args.virtual_headings}-{args.width}x{args.height}"
+        + ("-disparity" + (f"-d{dfeat}f" if dfeat else "") if getattr(args, "disparity", False) else "") + ".npz"
     )
     return f"""
 [devices.camera]
@@ -99,7 +100,8 @@ step = 0.75
 heading_step_deg = 15.0
 width = {args.width}
 height = {args.height}
-features = 5
+features = {args.features}
+{f"disparity_features = {dfeat}" if dfeat else ""}
 virtual_headings = {args.virtual_headings}
 disparity = {"true" if getattr(args, "disparity", False) else "false"}
 [localizer.filter]
@@ -222,6 +224,14 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def _sim_toml_build() -> dict[str, Any]:
+    """config/sim.toml's ``[map.build]`` (the simulated service's map), read from the file."""
+    import tomllib
+
+    with (Path(__file__).resolve().parents[1] / "config" / "sim.toml").open("rb") as f:
+        return dict(tomllib.load(f)["map"]["build"])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=30.0, help="measurement window")
@@ -235,6 +245,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-disparity", dest="disparity", action="store_false",
                    help="the map without its disparity channel (config/sim.toml's has it)")
     p.add_argument("--map-cache", default="~/.cache/lino-loc/maps", help="folder of the cached maps")
+    sim_build = _sim_toml_build()
+    p.add_argument("--features", type=int, default=sim_build["features"],
+                   help="the map's intensity features (default config/sim.toml's, %(default)s)")
+    p.add_argument("--disparity-features", type=int, default=sim_build.get("disparity_features"),
+                   help="the disparity channel's features (default config/sim.toml's, %(default)s)")
     p.add_argument("--virtual-headings", type=int, default=5,
                    help="map entries per survey image, as config/sim.toml (default %(default)s; 1: images alone)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
