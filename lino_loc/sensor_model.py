@@ -76,6 +76,11 @@ SensorModelKind = Literal["nearest_neighbour", "interpolated"]
 LOG_2PI = math.log(2.0 * math.pi)
 # Below this map size "auto" takes brute force without timing the tree (see docs/results.md).
 AUTO_KDTREE_MIN_ENTRIES = 2000
+#: Brute-force J-nearest search answers at most this many observations at a time: its
+#: (queries x map entries) float64 work arrays stay tens of megabytes (a map's own entries
+#: queried at once, as the action evaluator does, would otherwise need several per cent of
+#: a robot's memory for a 5000-entry map).
+BRUTE_QUERY_BLOCK = 256
 
 
 def log_von_mises_norm(kappa: ArrayLike) -> FloatArray:
@@ -679,6 +684,9 @@ class NearestNeighbourSensorModel:
         if not np.all(np.isfinite(q)):
             raise LinoLocError("observed features: contain NaN or infinite values")
         j = self.j if j is None else min(int(j), self.poses.shape[0])
+        if self._tree is None and q.shape[0] > BRUTE_QUERY_BLOCK:  # bound the (B, N) work arrays
+            parts = [self.neighbours(q[lo : lo + BRUTE_QUERY_BLOCK], j) for lo in range(0, q.shape[0], BRUTE_QUERY_BLOCK)]
+            return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         if self._tree is not None:
             # one query as a vector (cheaper than cKDTree's 2-D argument handling)
             d, idx = self._tree.query(q[0] if q.shape[0] == 1 else q, k=j)

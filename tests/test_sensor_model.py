@@ -283,3 +283,25 @@ def test_novelty_is_relative_to_the_maps_own_neighbour_distance() -> None:
     assert model.observe(far).novelty > 5.0
     mix = model.observe(feats[3])
     assert mix.with_log_weight(-1.0).novelty == mix.novelty
+
+
+def test_brute_force_answers_many_queries_in_blocks_of_bounded_memory() -> None:
+    """A map's own entries queried at once (as the action evaluator does): the same exact J
+    nearest as one query at a time, with work arrays of BRUTE_QUERY_BLOCK rows, not all."""
+    import tracemalloc
+
+    from lino_loc.sensor_model import BRUTE_QUERY_BLOCK
+
+    poses, feats = _random_map(n=3000, d=20, seed=3)
+    model = NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10, index="brute"))
+    q = feats + 0.01
+    tracemalloc.start()
+    idx, d2 = model.neighbours(q)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    for i in (0, BRUTE_QUERY_BLOCK - 1, BRUTE_QUERY_BLOCK, 2999):
+        one_idx, one_d2 = model.neighbours(q[i])
+        np.testing.assert_array_equal(idx[i], one_idx[0])
+        np.testing.assert_allclose(d2[i], one_d2[0], rtol=1e-12, atol=1e-12)
+    # unblocked, the (3000, 3000) float64 distances alone are 72 MB
+    assert peak < 6 * BRUTE_QUERY_BLOCK * 3000 * 8, f"{peak / 1e6:.0f} MB"
