@@ -38,6 +38,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.commands.run",
     "services.commands.replay_cmd",
     "services.commands.export_cmd",
+    "services.commands.plot_cmd",
     "services.commands.sim",
 )
 
