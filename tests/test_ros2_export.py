@@ -208,3 +208,22 @@ def test_evo_reads_the_bag(bag: Path, tmp_path: Path) -> None:
         stats = json.loads(z.read("stats.json"))
     # the session's estimate is the truth moved by (0.05, -0.02) in map
     assert stats["max"] == pytest.approx(math.hypot(0.05, -0.02), abs=1e-6)
+
+
+def test_the_bridge_example_maps_the_documented_pose_as_the_export_does() -> None:
+    """examples/ros2_pose_bridge.py (it needs ROS 2 to run; its conversion does not): the pose
+    example of docs/zeromq.md gives the export's covariance layout, stamp and quaternion."""
+    import importlib.util
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("ros2_pose_bridge", root / "examples" / "ros2_pose_bridge.py")
+    bridge = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bridge)
+    doc = (root / "docs" / "zeromq.md").read_text(encoding="utf-8")
+    example = json.loads(re.search(r"<!-- example: pose -->\n```json\n(.*?)```", doc, re.S).group(1))
+    f = bridge.pose_fields(example)
+    assert f["covariance"] == covariance_6x6(example["covariance"])
+    ns = stamp_ns(example["stamp"])
+    assert (f["sec"], f["nanosec"]) == (ns // 10**9, ns % 10**9) and f["frame_id"] == "map"
+    assert 2 * math.atan2(f["qz"], f["qw"]) == pytest.approx(example["pose"]["theta"])
