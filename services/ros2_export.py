@@ -202,9 +202,12 @@ class _BagWriter:
         self.t = self.ts.types
         self.odom = odom
         self.rec = rec
-        bag.parent.mkdir(parents=True, exist_ok=True)
-        self.writer = Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP)
-        self.writer.open()
+        try:
+            bag.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP)
+            self.writer.open()
+        except Exception as exc:  # noqa: BLE001 - rosbags' WriterError, OSError: one line
+            raise LinoLocError(f"--out {bag}: cannot write the bag ({exc})") from None
         self.conns = {topic: self.writer.add_connection(topic, msgtype, typestore=self.ts)
                       for topic, msgtype in BAG_TOPICS.items()}
         self.result = ExportResult(bag=bag, messages=dict.fromkeys(BAG_TOPICS, 0))

@@ -178,6 +178,8 @@ def test_bad_input_gives_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureF
     write_session(tmp_path / "s.mcap", frames=2)
     (tmp_path / "bag").mkdir()
     _one_line_exit_2(["export", "ros2", str(tmp_path / "s.mcap"), "--out", out], capsys, "exists")
+    _one_line_exit_2(["export", "ros2", str(tmp_path / "s.mcap"), "--out", str(text / "bag")], capsys,
+                     "cannot write")
 
 
 def test_without_rosbags_the_command_names_the_extra(monkeypatch: pytest.MonkeyPatch,
@@ -227,3 +229,26 @@ def test_the_bridge_example_maps_the_documented_pose_as_the_export_does() -> Non
     ns = stamp_ns(example["stamp"])
     assert (f["sec"], f["nanosec"]) == (ns // 10**9, ns % 10**9) and f["frame_id"] == "map"
     assert 2 * math.atan2(f["qz"], f["qw"]) == pytest.approx(example["pose"]["theta"])
+
+
+def test_the_odom_frame_is_the_odometry_integrated_and_split_at_a_stamp(bag: Path) -> None:
+    from services.ros2_export import odometry_poses
+
+    odom = {t: _xyt(m.pose.pose) for _, t, m in iter_bag(bag, ["/odom"])}
+    for _, t, m in iter_bag(bag, ["/tf"]):  # at a pose's stamp (the end of an increment here)
+        tfs = {(tf.header.frame_id, tf.child_frame_id): _tf_xyt(tf) for tf in m.transforms}
+        if ("map", "odom") in tfs:
+            assert np.allclose(tfs[("odom", "base_link")], odom[t], atol=1e-12)
+    incs = [{"stamp": 10.0 + 0.1 * k, "dt": 0.1, "dx": 0.1, "dy": 0.0, "dtheta": 0.0} for k in range(1, 4)]
+    poses = odometry_poses(incs, [10.15])  # half-way through the second increment
+    assert np.allclose(poses[stamp_ns(10.15)], [0.15, 0.0, 0.0])
+    assert np.allclose(poses[stamp_ns(10.3)], [0.3, 0.0, 0.0])
+
+
+def test_a_cut_recording_exports_up_to_its_last_whole_chunk(tmp_path: Path) -> None:
+    write_session(tmp_path / "s.mcap", frames=12)
+    data = (tmp_path / "s.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    r = export_ros2([tmp_path / "cut.mcap"], tmp_path / "bag")
+    assert r.truncated is not None and "cut short" in r.truncated
+    assert 0 < r.messages["/amcl_pose"] < 12
