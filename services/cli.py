@@ -37,6 +37,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.commands.keys_cmd",
     "services.commands.run",
     "services.commands.replay_cmd",
+    "services.commands.export_cmd",
+    "services.commands.plot_cmd",
     "services.commands.sim",
 )
 
