@@ -287,3 +287,62 @@ def test_the_simulated_service_enables_the_live_view_on_loopback() -> None:
     cfg = ServiceConfig.simulated_defaults()
     assert cfg.live_view.enabled and cfg.live_view.host == "127.0.0.1" and cfg.live_view.port == 8765
     assert not ServiceConfig().live_view.enabled
+
+
+def test_a_recording_carries_the_map_drawing_at_the_start_of_each_part(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from services.recording.recorder import Recorder, RecordingConfig
+
+    m, _, _ = _world()
+    cfg = ServiceConfig.simulated_defaults()
+    scene = MapScene.of(m, cfg)  # the office's walls and boxes
+    assert scene.outline_what == "walls" and scene.outline.shape[1:] == (2, 2) and len(scene.outline) >= 4
+    path = tmp_path / "map.mcap"
+    rec = Recorder(RecordingConfig(path=path), {"seed": "1"}, scene=scene)
+    rec.start()
+    rec.close()
+    with open(path, "rb") as f:
+        got = {ch.topic: msg for _, ch, _, msg in
+               make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                   topics=["/map/survey", "/map/outline"])}
+    assert set(got) == {"/map/survey", "/map/outline"}
+    lines = got["/map/outline"].entities[0].lines[0]
+    assert len(lines.points) == 2 * len(scene.outline)
+    assert got["/map/outline"].entities[0].metadata[0].value == "walls"
+    assert got["/map/survey"].entities[0].id == "survey"
+
+
+def test_the_committed_foxglove_layout_is_the_generated_one_and_opens_every_channel() -> None:
+    from services.messages import PoseMessage
+    from services.recording.foxglove_layout import LAYOUT_FILE, layout, layout_text
+
+    assert LAYOUT_FILE.read_text(encoding="utf-8") == layout_text(), (
+        "run python -m services.recording.foxglove_layout")
+    lay = layout()
+    assert set(lay) == {"configById", "globalVariables", "userNodes", "playbackConfig", "layout"}
+    panels = lay["configById"]
+
+    def leaves(node: Any) -> list[str]:
+        if isinstance(node, str):
+            return [node]
+        assert set(node) == {"first", "second", "direction", "splitPercentage"}
+        assert node["direction"] in ("row", "column") and 0 < node["splitPercentage"] < 100
+        return leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(lay["layout"])) == sorted(panels)
+    assert {p.split("!")[0] for p in panels} == {"3D", "Image", "StateTransitions", "Plot", "RawMessages"}
+    three_d = panels["3D!map"]
+    assert three_d["followTf"] == "map"
+    drawn = {"/pose", "/pose/ellipse", "/particles", "/truth/pose", "/map/survey", "/map/outline"}
+    assert set(three_d["topics"]) == drawn and all(three_d["topics"][t]["visible"] for t in drawn)
+    assert three_d["layers"]["grid"]["layerId"] == "foxglove.Grid"
+    assert panels["Image!camera"]["imageMode"]["imageTopic"] == "/camera/image"
+    used = drawn | {"/camera/image", "/pose/estimate", "/status"}
+    assert used <= set(LIVE_TOPICS) and used <= set(TOPICS)
+    for path in (panels["StateTransitions!state"]["paths"] + panels["Plot!quality"]["paths"]):
+        topic, field = path["value"].split(".", 1)
+        assert topic == "/pose/estimate" and field in PoseMessage.model_fields
+    assert panels["RawMessages!status"]["topicPath"] == "/status"
+
