@@ -151,7 +151,7 @@ def test_a_foxglove_client_subscribes_receives_and_decodes_the_pose_and_the_part
     assert st["serving"] and st["error"] is None and st["clients"] == 0
     port = live.port
     assert st["address"] == f"ws://127.0.0.1:{port}"
-    want = {"/pose", "/particles", "/pose/ellipse", "/map/survey", "/map/outline"}
+    want = {"/pose", "/particles", "/pose/ellipse", "/tf", "/map/survey", "/map/outline"}
 
     async def client() -> tuple[dict[str, dict[str, Any]], dict[str, list[tuple[int, bytes]]], dict[str, Any]]:
         async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
@@ -199,6 +199,34 @@ def test_a_foxglove_client_subscribes_receives_and_decodes_the_pose_and_the_part
     assert outline.entities[0].id == "outline" and len(outline.entities[0].lines[0].points) == 8
     ellipse = _decoder(channels["/pose/ellipse"])(got["/pose/ellipse"][-1][1])
     assert ellipse.entities[0].id == "pose_ellipse"
+    tf = _decoder(channels["/tf"])
+    frames = {(m.parent_frame_id, m.child_frame_id): m for m in (tf(d) for _, d in got["/tf"])}
+    assert set(frames) == {("map", "base_link"), ("base_link", "camera")}  # the head's pan
+    head = frames[("base_link", "camera")].rotation
+    assert head.x == 0.0 and head.y == 0.0 and abs(head.z**2 + head.w**2 - 1.0) < 1e-9
+
+
+def test_the_truth_goes_live_to_a_subscribed_client(running: _Running) -> None:
+    port = running.daemon.live.port
+    relay = running.daemon._truth_tap()  # what the truth relay calls (simulation)
+    assert relay is not None
+    truth = {"v": 1, "stamp": time.time(), "frame_id": "map", "pose": {"x": 1.5, "y": 0.5, "theta": 0.25}}
+
+    async def client() -> dict[str, list[tuple[int, bytes]]]:
+        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
+            channels = await _advertised(ws, {"/truth/pose"})
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": 3, "channelId": channels["/truth/pose"]["id"]}]}))
+            await asyncio.sleep(0.3)
+            for _ in range(3):
+                relay(json.dumps(truth).encode())
+            got = await _collect(ws, {3: "/truth/pose"}, {"/truth/pose"}, timeout=5.0)
+            return {"channel": channels["/truth/pose"], **got}  # type: ignore[dict-item]
+
+    got = asyncio.run(client())
+    assert len(got["/truth/pose"]) == 3
+    p = _decoder(got["channel"])(got["/truth/pose"][0][1])  # type: ignore[arg-type]
+    assert p.frame_id == "map" and (p.pose.position.x, p.pose.position.y) == (1.5, 0.5)
 
 
 def test_a_client_that_vanishes_without_closing_does_not_hurt_the_daemon(running: _Running) -> None:
@@ -346,3 +374,25 @@ def test_the_committed_foxglove_layout_is_the_generated_one_and_opens_every_chan
         assert topic == "/pose/estimate" and field in PoseMessage.model_fields
     assert panels["RawMessages!status"]["topicPath"] == "/status"
 
+
+
+def test_the_truth_goes_to_both_the_recorder_and_the_live_view(tmp_path: Path) -> None:
+    from services.recording.recorder import Recorder, RecordingConfig
+
+    m, _, _ = _world()
+    cfg = ServiceConfig(devices={"camera": {"kind": "sim"}}, localizer=_config(),
+                        endpoints={"pub": f"ipc://{tmp_path}/p", "rep": f"ipc://{tmp_path}/r"},
+                        live_view={"enabled": True})
+    live = LiveView(cfg.live_view)
+    live._listener.topics = frozenset({"/truth/pose"})  # as a subscribed client makes it
+    rec = Recorder(RecordingConfig(path=tmp_path / "t.mcap"))
+    ctx: zmq.Context[Any] = zmq.Context()
+    try:
+        d = Daemon(cfg, m, device_factories=DeviceFactories(camera=_Camera8, head=_Head, odometry=_Odometry),
+                   context=ctx, recorder=rec, live_view=live)
+        tap = d._truth_tap()
+        assert tap is not None
+        tap(b'{"v":1,"stamp":1.0,"frame_id":"map","pose":{"x":0,"y":0,"theta":0}}')
+        assert live.queued == 1 and rec._queue.qsize() == 1
+    finally:
+        ctx.term()
