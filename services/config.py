@@ -15,6 +15,7 @@
     [publish]          services.publisher.PublishConfig: particle throttling, truth (simulation)
     [persistence]      services.persistence.PersistenceConfig: state file (last pose), save period
     [recording]        services.recording.recorder.RecordingConfig: the session's MCAP file
+    [live_view]        services.recording.live_view.LiveViewConfig: a Foxglove WebSocket server
     [logging]          level
 
 Sources, highest priority first: environment variables ``LINO_LOC__SECTION__FIELD``
@@ -59,6 +60,7 @@ from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
 from services.curve_auth import CurveConfig, curve_problem
 from services.persistence import PersistenceConfig
 from services.publisher import PublishConfig
+from services.recording.live_view import LiveViewConfig
 from services.recording.recorder import RecordingConfig
 from services.relay_publisher import RelayConfig
 
@@ -276,6 +278,7 @@ class ServiceConfig(BaseSettings):
     publish: PublishConfig = Field(default_factory=PublishConfig)
     persistence: PersistenceConfig = Field(default_factory=PersistenceConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    live_view: LiveViewConfig = Field(default_factory=LiveViewConfig)
     logging: LoggingConfig = Field(default_factory=LoggingConfig)
 
     @classmethod
@@ -343,6 +346,7 @@ SIM_OVERRIDES: dict[str, Any] = {
     },
     "localizer": {"filter": {"n_particles": 1000}},
     "persistence": {"state_file": "~/.local/state/lino-loc/sim-state.json"},
+    "live_view": {"enabled": True},
 }  # fmt: skip
 
 

@@ -13,6 +13,8 @@ an object of its own:
 - the simulation-only truth relay (:mod:`services.truth_relay`);
 - the session's recording (:mod:`services.recording.recorder`: the loop, the odometry, head
   and truth threads hand it what they get and what the Localizer was given, never waiting);
+- the live view (:mod:`services.recording.live_view`: a Foxglove WebSocket server; the loop
+  and the truth thread hand it what they publish, only while a client watches, never waiting);
 - systemd notifications (:mod:`services.sd_notify`).
 
 Threads::
@@ -104,6 +106,7 @@ from services.persistence import (
     refusal,
 )
 from services.publisher import AnyPublisher, PosePublisher, RateLimiter, open_publisher
+from services.recording.live_view import LiveView
 from services.recording.recorder import Recorder, tap
 from services.status import STATUS_PERIOD_S, StatusReporter, StatusSources, map_info, status_line
 from services.truth_relay import TruthRelay
@@ -244,9 +247,11 @@ class Daemon:
         notifier: sd_notify.Notifier | None = None,
         context: zmq.Context[Any] | None = None,
         recorder: Recorder | None = None,
+        live_view: LiveView | None = None,
     ) -> None:
         self.cfg = cfg
         self.recorder = recorder or Recorder.off()
+        self.live = live_view or LiveView.off()
         self.truth_endpoint = truth_endpoint if cfg.publish.truth else None
         self.has_disparity = "disparity" in getattr(amap, "channels", {})
         factories = device_factories or default_device_factories(cfg, self.has_disparity)
@@ -287,7 +292,7 @@ class Daemon:
             sources=StatusSources(self._state, lambda: self.localizer.appearance_changes,
                                   self.active.info, self._persistence_info, self._pose_port_info,
                                   lambda: self.control.refused_handshakes if self.control else 0,
-                                  self.recorder.info),
+                                  self.recorder.info, self.live.info),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
 
@@ -309,6 +314,7 @@ class Daemon:
             raise
         self._remove_leftovers()
         self.recorder.start()
+        self.live.start()  # a port in use is logged and in the status: the daemon goes on
         self.workers["odometry"].start()  # its counters may decide the initial belief
         self._initial_belief()
         for name, w in self.workers.items():
@@ -317,12 +323,24 @@ class Daemon:
         self.control.start()
         self.saver.start()
         if self.truth_endpoint:
-            self.truth = TruthRelay(self.ctx, self.truth_endpoint, self.publisher,
-                                    self.recorder.truth if self.recorder.enabled else None)
+            self.truth = TruthRelay(self.ctx, self.truth_endpoint, self.publisher, self._truth_tap())
             self.truth.start()
         self.active.start()
         self.notifier.ready(status_line(None, ep.pub, False))
         log.info("serving: poses on %s, control on %s", ep.pub, ep.rep)
+
+    def _truth_tap(self) -> Callable[[bytes], None] | None:
+        """Who gets the relayed truth besides the PUB socket: the recorder, the live view."""
+        taps = [t for t, on in ((self.recorder.truth, self.recorder.enabled),
+                                (self.live.truth, self.live.enabled)) if on]
+        if len(taps) < 2:
+            return taps[0] if taps else None
+
+        def both(data: bytes) -> None:
+            for t in taps:
+                t(data)
+
+        return both
 
     def _remove_leftovers(self) -> None:
         """Temporary files an interrupted save left next to the state file (kill -9 between
@@ -403,9 +421,10 @@ class Daemon:
             w.stop()
         self._save(sync=True)
         self.saver.stop()
-        self.recorder.close()
         if self.truth is not None:
             self.truth.stop()
+        self.recorder.close()
+        self.live.close()
         if self.publisher is not None:
             self.publisher.close()
         if self._own_ctx:
@@ -479,6 +498,7 @@ class Daemon:
             log.info("camera frames again: localizing with images")
         self.watch.dead_reckoning = False
         self._publish_pose(est, stamp, pan)
+        self.live.frame(stamp, frame.left)
         self.status.frame_taken()
         self.active.step(est, stamp, delta)
 
@@ -505,10 +525,12 @@ class Daemon:
         if msg is None:
             raise LinoLocError("the estimate holds a non-finite value: no pose published")
         self.recorder.pose(msg)
+        self.live.pose(msg)
         self._failed_in_a_row = 0
         self.status.pose_published(stamp)
         self.poses.publish_particles(stamp)
         self.recorder.particles(stamp, self.localizer.particles)
+        self.live.particles(stamp, self.localizer.particles)
 
     def _state(self) -> str:
         est = self.poses.latest()[1] if self.poses is not None else None
@@ -519,6 +541,7 @@ class Daemon:
         msg = self.status.publish()
         self.publisher.publish("status", msg)
         self.recorder.status(msg)
+        self.live.status(msg)
         self.notifier.status(status_line(msg, self.cfg.endpoints.pub, self.watch.dead_reckoning))
 
     def _save(self, sync: bool) -> SavedState | None:

@@ -422,6 +422,23 @@ class RecordingInfo(BaseModel):
     error: str | None = Field(None, description="why recording stopped (None while it works)")
 
 
+class LiveViewInfo(BaseModel):
+    """The live view (``[live_view]``: a Foxglove WebSocket server in the daemon)."""
+
+    model_config = ConfigDict(extra="ignore", json_schema_serialization_defaults_required=True)
+
+    address: str = Field(description="ws://HOST:PORT (the port bound, or the one configured)")
+    serving: bool = Field(False, description="the server runs (false: see error)")
+    clients: int = Field(0, ge=0, description="clients subscribed to at least one topic")
+    topics: list[str] = Field(default_factory=list, description="the topics subscribed to")
+    messages: int = Field(0, ge=0, description="messages sent to the server since start")
+    dropped: int = Field(
+        0, ge=0, description="events not sent because the sender fell behind (its queue was full); "
+        "the loop never waits for the live view"
+    )
+    error: str | None = Field(None, description="why the server is not serving (None while it is)")
+
+
 class StatusMessage(_Published):
     """Topic ``status`` (once a second) and the ``status`` reply."""
 
@@ -452,6 +469,7 @@ class StatusMessage(_Published):
     persistence: PersistenceInfo | None = None
     pose_port: PosePortInfo | None = None
     recording: RecordingInfo | None = None
+    live_view: LiveViewInfo | None = None
     control_refused_handshakes: int = Field(
         0, ge=0, description="control connections refused at the handshake since start (no "
         "CURVE keys, a key not authorized, not ZeroMQ)"

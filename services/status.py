@@ -47,6 +47,7 @@ from services.messages import (
     ActiveVisionInfo,
     DeviceHealthModel,
     LatencyStats,
+    LiveViewInfo,
     MapInfo,
     PersistenceInfo,
     PosePortInfo,
@@ -104,6 +105,7 @@ class StatusSources:
     pose_port: Callable[[], PosePortInfo | None] = lambda: None
     control_refused_handshakes: Callable[[], int] = lambda: 0
     recording: Callable[[], RecordingInfo | None] = lambda: None
+    live_view: Callable[[], LiveViewInfo | None] = lambda: None
 
 
 class StatusReporter:
@@ -252,6 +254,7 @@ class StatusReporter:
             pose_port=self.sources.pose_port(),
             control_refused_handshakes=self.sources.control_refused_handshakes(),
             recording=self.sources.recording(),
+            live_view=self.sources.live_view(),
             simulated=self.simulated,
             version=__version__,
         )

@@ -125,7 +125,7 @@ def echo_command(pub: str, curve: Any) -> str:
     return cmd
 
 
-def banner(cfg: Any, reason: str, sim: Any, recording: Path | None = None) -> str:
+def banner(cfg: Any, reason: str, sim: Any, recording: Path | None = None, live: Any = None) -> str:
     ep = cfg.endpoints
     lines = [
         "",
@@ -141,6 +141,9 @@ def banner(cfg: Any, reason: str, sim: Any, recording: Path | None = None) -> st
         lines.append(f"  simulator  pid {sim.proc.pid}: head {i.head}, odometry {i.odometry}, camera {i.camera}")
     if recording is not None:
         lines.append(f"  recording  {recording}   replay it: lino-loc replay {recording}")
+    if live is not None:
+        lines.append(f"  live view  {live.address} (Foxglove WebSocket; layout docs/foxglove-layout.json)"
+                     if live.error is None else f"  live view  not served: {live.error}")
     if ep.curve.enabled:
         lines.append(f"  CURVE      on: only clients whose public key is in {ep.curve.authorized_clients}")
     lines += [
@@ -185,7 +188,9 @@ def run_daemon(args: argparse.Namespace) -> int:
                 info = sim.start()
                 cfg = resolve_auto(cfg, info)
                 truth = info.truth
-            daemon = Daemon(cfg, amap, truth_endpoint=truth, recorder=recorder(cfg, amap))
+            scene = map_scene(cfg, amap)
+            daemon = Daemon(cfg, amap, truth_endpoint=truth, recorder=recorder(cfg, amap, scene),
+                            live_view=live_view(cfg, scene))
             try:
                 daemon.start()
             except OSError as exc:
@@ -205,7 +210,7 @@ def run_daemon(args: argparse.Namespace) -> int:
         sim_died = threading.Event()
         if sim is not None:
             threading.Thread(target=_watch_sim, args=(sim, daemon, sim_died), name="sim-watch", daemon=True).start()
-        print(banner(cfg, reason, sim, daemon.recorder.path), file=sys.stderr, flush=True)
+        print(banner(cfg, reason, sim, daemon.recorder.path, daemon.live.info()), file=sys.stderr, flush=True)
         code = daemon.run()
         return 1 if sim_died.is_set() else code
     finally:
@@ -239,9 +244,26 @@ def recording_config(cfg: Any, record: str | None) -> Any:
     return cfg
 
 
-def recorder(cfg: Any, amap: Any) -> Any:
+def map_scene(cfg: Any, amap: Any) -> Any:
+    """What the map channels draw (survey poses, outline) when recording or live, else None."""
+    if not (cfg.recording.enabled or cfg.live_view.enabled):
+        return None
+    from services.recording.live_view import MapScene
+
+    return MapScene.of(amap, cfg)
+
+
+def live_view(cfg: Any, scene: Any) -> Any:
+    """The live view (``LiveView.off()`` unless ``[live_view] enabled``)."""
+    from services.recording.live_view import LiveView
+
+    return LiveView(cfg.live_view, scene) if cfg.live_view.enabled else LiveView.off()
+
+
+def recorder(cfg: Any, amap: Any, scene: Any = None) -> Any:
     """The session's recorder (``Recorder.off()`` unless ``[recording] enabled``), with the
-    metadata a replay needs: the configuration, the seed, the map's checksum."""
+    metadata a replay needs: the configuration, the seed, the map's checksum; ``scene``: the
+    map's survey poses and outline, written at the start of each part."""
     from services.recording.recorder import Recorder
     from services.status import map_info
 
@@ -253,7 +275,7 @@ def recorder(cfg: Any, amap: Any) -> Any:
         "map_checksum": str(info.checksum), "map_path": info.path,
         "has_disparity": str("disparity" in getattr(amap, "channels", {})).lower(),
         "started": str(time.time()),
-    })
+    }, scene=scene)
 
 
 def _watch_sim(sim: Any, daemon: Any, died: threading.Event, period: float = 0.5) -> None:

@@ -37,6 +37,13 @@ Outputs::
     /truth             lino_loc.Truth            simulation: the true pose (JSON)
     /truth/pose        foxglove.PoseInFrame      simulation: the true pose, drawable
 
+The map (once, at the start of a recording; on subscription in a live view)::
+
+    /map/survey        foxglove.SceneUpdate      the map's survey poses (entity ``survey``)
+    /map/outline       foxglove.SceneUpdate      the building's outline (entity ``outline``): the
+                                                 world's walls in simulation, else the survey's
+                                                 extent
+
 Frames (REP-103/105): ``map``, ``base_link`` (the robot), ``camera`` (the head, turned by the
 pan about the vertical axis).
 """
@@ -182,6 +189,10 @@ TOPICS: dict[str, Topic] = {t.topic: t for t in (
           "simulation: the true pose"),
     Topic("/truth/pose", "foxglove.PoseInFrame", "protobuf", "PoseInFrame", "output",
           "simulation: the true pose"),
+    Topic("/map/survey", "foxglove.SceneUpdate", "protobuf", "SceneUpdate", "output",
+          "the map's survey poses, once"),
+    Topic("/map/outline", "foxglove.SceneUpdate", "protobuf", "SceneUpdate", "output",
+          "the building's outline, once"),
 )}  # fmt: skip
 
 #: The topics a recording must have to be replayed.

@@ -11,7 +11,15 @@ outputs and the camera's frames: what a recording and a live view draw.
 - :func:`transforms`: ``map -> base_link`` (the estimate) and ``base_link -> camera`` (the
   head's pan about z) as FrameTransforms;
 - :func:`compressed_image`, :func:`raw_disparity`: the frame's images
-  (:mod:`services.recording.image_codec`).
+  (:mod:`services.recording.image_codec`);
+- :func:`survey_update`: the map's survey poses as a SceneUpdate entity ``survey`` in ``map``:
+  a small sphere per surveyed position and a tick of :data:`SURVEY_TICK_M` along each pose's
+  heading (one LINE_LIST; every k-th pose beyond :data:`MAX_SURVEY_POSES`);
+- :func:`outline_update`: line segments (the building's walls) as a SceneUpdate entity
+  ``outline`` in ``map`` (one LINE_LIST).
+
+The map's two entities have no lifetime (they stay until replaced): a viewer draws them from
+one message.
 
 Stamps are seconds since the epoch as float; :func:`timestamp` splits them into whole seconds
 and nanoseconds.
@@ -34,6 +42,13 @@ ELLIPSE_PROBABILITY = 0.95
 _CHI2 = -2.0 * math.log(1.0 - ELLIPSE_PROBABILITY)
 #: Thickness of the drawn ellipse, m.
 ELLIPSE_THICKNESS_M = 0.02
+#: Length of a survey pose's heading tick, m; diameter of a surveyed position's sphere, m.
+SURVEY_TICK_M = 0.15
+SURVEY_DOT_M = 0.06
+#: Survey poses drawn at most (a map with virtual headings holds thousands; every k-th).
+MAX_SURVEY_POSES = 1500
+#: Width of the outline's lines, m.
+OUTLINE_WIDTH_M = 0.03
 
 
 def _m() -> Any:
@@ -129,3 +144,40 @@ def raw_disparity(disp: np.ndarray, stamp: float) -> Any:
     h, w = np.asarray(disp).shape
     return _m().RawImage(timestamp=timestamp(stamp), frame_id=CAMERA_FRAME, width=int(w),
                          height=int(h), encoding=encoding, step=step, data=data)
+
+
+def survey_update(poses: ArrayLike, stamp: float) -> Any:
+    """SceneUpdate with the entity ``survey`` (module docstring) of (N, 3) poses; positions
+    closer than 1 cm are drawn once."""
+    m = _m()
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if p.shape[0] > MAX_SURVEY_POSES:
+        p = p[:: -(-p.shape[0] // MAX_SURVEY_POSES)]
+    xy = np.unique(np.round(p[:, :2], 2), axis=0)
+    dot = m.Vector3(x=SURVEY_DOT_M, y=SURVEY_DOT_M, z=SURVEY_DOT_M)
+    blue = m.Color(r=0.2, g=0.45, b=1.0, a=0.8)
+    spheres = [m.SpherePrimitive(pose=_pose(x, y, 0.0), size=dot, color=blue) for x, y in xy.tolist()]
+    points = []
+    for x, y, theta in p.tolist():
+        points += [m.Point3(x=x, y=y, z=0.0),
+                   m.Point3(x=x + SURVEY_TICK_M * math.cos(theta), y=y + SURVEY_TICK_M * math.sin(theta), z=0.0)]
+    ticks = m.LinePrimitive(type=m.LinePrimitiveLineType.LineList, pose=_pose(0.0, 0.0, 0.0),
+                            thickness=0.01, points=points, color=m.Color(r=0.2, g=0.45, b=1.0, a=0.5))
+    entity = m.SceneEntity(timestamp=timestamp(stamp), frame_id=MAP_FRAME, id="survey",
+                           spheres=spheres, lines=[ticks] if points else [])
+    return m.SceneUpdate(entities=[entity])
+
+
+def outline_update(segments: ArrayLike, stamp: float, what: str = "walls") -> Any:
+    """SceneUpdate with the entity ``outline``: (M, 2, 2) segments ``[[x0, y0], [x1, y1]]``
+    in ``map`` as one LINE_LIST; ``what`` goes into its metadata (``walls``, ``survey extent``)."""
+    m = _m()
+    seg = np.asarray(segments, dtype=np.float64).reshape(-1, 2, 2)
+    points = [m.Point3(x=x, y=y, z=0.0) for x, y in seg.reshape(-1, 2).tolist()]
+    line = m.LinePrimitive(type=m.LinePrimitiveLineType.LineList, pose=_pose(0.0, 0.0, 0.0),
+                           thickness=OUTLINE_WIDTH_M, points=points,
+                           color=m.Color(r=0.85, g=0.85, b=0.85, a=1.0))
+    entity = m.SceneEntity(timestamp=timestamp(stamp), frame_id=MAP_FRAME, id="outline",
+                           lines=[line] if points else [],
+                           metadata=[m.KeyValuePair(key="what", value=what)])
+    return m.SceneUpdate(entities=[entity])

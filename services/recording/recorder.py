@@ -117,8 +117,10 @@ def subsample(poses: np.ndarray, max_count: int) -> np.ndarray:
 class Recorder:
     """The recorder (module docstring). ``Recorder.off()`` is one that records nothing."""
 
-    def __init__(self, cfg: RecordingConfig | None, metadata: dict[str, Any] | None = None) -> None:
+    def __init__(self, cfg: RecordingConfig | None, metadata: dict[str, Any] | None = None,
+                 scene: Any = None) -> None:
         self.cfg = cfg or RecordingConfig()
+        self.scene = scene  # the map's survey poses and outline (live_view.MapScene), or None
         self.enabled = cfg is not None
         self.metadata = dict(metadata or {})
         self.path = self.cfg.session_path() if self.enabled else None
@@ -247,7 +249,7 @@ class Recorder:
 
         try:
             assert self.path is not None
-            self._file = SessionFile(self.path, self.metadata, self.cfg.rotate_mb)
+            self._file = SessionFile(self.path, self.metadata, self.cfg.rotate_mb, self._preamble())
             log.info("recording to %s", self.path)
         except Exception as exc:  # noqa: BLE001 - a bad path must not stop the daemon
             self._failed(exc)
@@ -265,6 +267,18 @@ class Recorder:
                 self._guard(lambda f: f.flush())
                 next_flush = time.monotonic() + FLUSH_PERIOD_S
         self._guard(lambda f: f.close())
+
+    def _preamble(self) -> tm.Messages:
+        """/map/survey and /map/outline, written at the start of each part (none without a
+        scene; a scene that cannot be encoded is logged and left out)."""
+        s = self.scene
+        if s is None:
+            return []
+        try:
+            return tm.map_messages(s.poses, s.outline, time.time(), s.outline_what)
+        except Exception as exc:  # noqa: BLE001 - the map drawing is not worth the session
+            log.warning("recording: the map's drawing left out: %s", exc)
+            return []
 
     def _write(self, event: tuple[Any, ...]) -> None:
         seq, wall_ns, frame, kind, *args = event

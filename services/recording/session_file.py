@@ -10,7 +10,8 @@ was flushed survives a kill -9 of the process (not a power cut: no fsync) and re
 ``mcap.stream_reader.StreamReader`` up to the cut (:mod:`services.recording.recording_reader`).
 After a flush that leaves the file at ``rotate_mb`` or more, the file is finished (summary,
 footer) and the next part opened: ``NAME.mcap``, ``NAME-001.mcap``, ``NAME-002.mcap``, ...
-each complete in itself (schemas, channels, metadata with its ``part``).
+each complete in itself (schemas, channels, metadata with its ``part``, and the
+``preamble``: the map's drawing, /map/survey and /map/outline).
 """
 
 from __future__ import annotations
@@ -33,8 +34,10 @@ def part_path(path: Path, part: int) -> Path:
 class SessionFile:
     """The MCAP writer of one session (module docstring). Not thread-safe: one writer."""
 
-    def __init__(self, path: Path, metadata: dict[str, Any], rotate_mb: float = 0.0) -> None:
+    def __init__(self, path: Path, metadata: dict[str, Any], rotate_mb: float = 0.0,
+                 preamble: list[tuple[str, int, bytes]] | None = None) -> None:
         self.path = Path(path)
+        self.preamble = list(preamble or [])  # (topic, log ns, bytes) at the start of each part
         self.metadata = dict(metadata)
         self.rotate_bytes = int(rotate_mb * 1024 * 1024) if rotate_mb > 0 else 0
         self.part = 0
@@ -65,6 +68,8 @@ class SessionFile:
                                        for k, v in meta.items()})
         self._writer = w
         self.files.append(path)
+        for topic, log_ns, data in self.preamble:
+            self.write(topic, log_ns, log_ns, data)
 
     def write(self, topic: str, log_ns: int, publish_ns: int, data: bytes, sequence: int = 0) -> None:
         self._writer.add_message(self._ids[topic], log_ns, data, publish_ns, sequence & 0xFFFFFFFF)

@@ -79,3 +79,11 @@ def truth_messages(truth_json: bytes) -> Messages:
         return []
     t = stamp_ns(stamp)
     return [("/truth", t, bytes(truth_json)), ("/truth/pose", t, fx.pose_in_frame(xyt, stamp).encode())]
+
+
+def map_messages(survey_poses: np.ndarray, outline: np.ndarray, stamp: float,
+                 outline_what: str = "walls") -> Messages:
+    """/map/survey (the map's poses) and /map/outline ((M, 2, 2) segments) at ``stamp``."""
+    t = stamp_ns(stamp)
+    return [("/map/survey", t, fx.survey_update(survey_poses, stamp).encode()),
+            ("/map/outline", t, fx.outline_update(outline, stamp, outline_what).encode())]
