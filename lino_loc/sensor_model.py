@@ -677,40 +677,45 @@ class NearestNeighbourSensorModel:
 
     def neighbours(self, y: ArrayLike, j: int | None = None) -> tuple[IntArray, FloatArray]:
         """The J nearest map entries to each observation: y (d,) or (B, d) ->
-        (indices (B, J), squared distances (B, J)), sorted by distance. ``j`` overrides J."""
+        (indices (B, J), squared distances (B, J)), sorted by distance (ties by index). ``j``
+        overrides J.
+
+        The search (KD-tree or brute force, :attr:`index_kind`) only selects the J entries;
+        their squared distances are then computed one way for both, sum_k (f_k - y_k)^2, so the
+        answer does not depend on which search "auto" chose (it times them on the machine it
+        runs on): a replay of a recording gives the same weights to the bit."""
         q = np.atleast_2d(np.asarray(y, dtype=np.float64))
         if q.shape[1] != self.dim:
             raise LinoLocError(f"observed features: expected {self.dim} values, got {q.shape[1]}")
         if not np.all(np.isfinite(q)):
             raise LinoLocError("observed features: contain NaN or infinite values")
         j = self.j if j is None else min(int(j), self.poses.shape[0])
-        if self._tree is None and q.shape[0] > BRUTE_QUERY_BLOCK:  # bound the (B, N) work arrays
+        if q.shape[0] > BRUTE_QUERY_BLOCK:  # bound the (B, N) work arrays of brute force
             parts = [self.neighbours(q[lo : lo + BRUTE_QUERY_BLOCK], j) for lo in range(0, q.shape[0], BRUTE_QUERY_BLOCK)]
             return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        idx = self._nearest(q, j)
+        diff = self.features[idx] - q[:, None, :]
+        d2 = np.einsum("bjk,bjk->bj", diff, diff)
+        order = np.lexsort((idx, d2), axis=1)
+        return np.take_along_axis(idx, order, axis=1), np.take_along_axis(d2, order, axis=1)
+
+    def _nearest(self, q: FloatArray, j: int) -> IntArray:
+        """Indices (B, j), in no particular order, of the j map entries nearest to each row of q."""
         if self._tree is not None:
             # one query as a vector (cheaper than cKDTree's 2-D argument handling)
-            d, idx = self._tree.query(q[0] if q.shape[0] == 1 else q, k=j)
-            d2 = np.asarray(d, dtype=np.float64).reshape(q.shape[0], j) ** 2
-            return np.asarray(idx, dtype=np.int64).reshape(q.shape[0], j), d2
-        # |f|^2 - 2 f.y + |y|^2; clip round-off below zero. For a few queries einsum (no BLAS)
-        # is used: a threaded BLAS matrix-vector product is much slower on a loaded machine
-        # (see docs/results.md).
+            _, idx = self._tree.query(q[0] if q.shape[0] == 1 else q, k=j)
+            return np.asarray(idx, dtype=np.int64).reshape(q.shape[0], j)
+        # |f|^2 - 2 f.y + |y|^2. For a few queries einsum (no BLAS) is used: a threaded BLAS
+        # matrix-vector product is much slower on a loaded machine (see docs/results.md).
         if q.shape[0] <= 8:
             cross = np.einsum("bj,nj->bn", q, self.features)
         else:
             cross = q @ self.features.T
         d2 = self._sqnorm[None, :] - 2.0 * cross + np.einsum("ij,ij->i", q, q)[:, None]
-        np.maximum(d2, 0.0, out=d2)
         n = d2.shape[1]
         if j < n:
-            part = np.argpartition(d2, j - 1, axis=1)[:, :j]
-        else:
-            part = np.broadcast_to(np.arange(n), (q.shape[0], n))
-        pd2 = np.take_along_axis(d2, part, axis=1)
-        order = np.argsort(pd2, axis=1)
-        return np.take_along_axis(part, order, axis=1).astype(np.int64), np.take_along_axis(
-            pd2, order, axis=1
-        )
+            return np.argpartition(d2, j - 1, axis=1)[:, :j].astype(np.int64)
+        return np.broadcast_to(np.arange(n, dtype=np.int64), (q.shape[0], n)).copy()
 
     def observe(self, y: ArrayLike, j: int | None = None) -> PoseMixture:
         """The sensor model for one observed feature vector y (d,) as a PoseMixture."""

@@ -305,3 +305,18 @@ def test_brute_force_answers_many_queries_in_blocks_of_bounded_memory() -> None:
         np.testing.assert_allclose(d2[i], one_d2[0], rtol=1e-12, atol=1e-12)
     # unblocked, the (3000, 3000) float64 distances alone are 72 MB
     assert peak < 6 * BRUTE_QUERY_BLOCK * 3000 * 8, f"{peak / 1e6:.0f} MB"
+
+
+def test_brute_force_and_kdtree_give_the_same_bits() -> None:
+    """'auto' picks its search by timing; the answer must not depend on the pick (a replay
+    reproduces the service's poses to the bit), so both give identical indices and distances."""
+    poses, feats = _random_map(n=2500, d=20, seed=4)
+    brute = NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10, index="brute"))
+    tree = NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10, index="kdtree"))
+    rng = np.random.default_rng(5)
+    for q in (feats[7] + 0.01, feats[:40] + rng.normal(scale=0.2, size=(40, 20))):
+        bi, bd = brute.neighbours(q)
+        ti, td = tree.neighbours(q)
+        np.testing.assert_array_equal(bi, ti)
+        assert np.array_equal(bd, td)  # the same bits, not only close
+        assert np.all(np.diff(bd, axis=1) >= 0)
