@@ -14,11 +14,19 @@ before, under another light every view is less familiar. This detector is a one-
 
 where v_t in [0, 1] is how much of an independent view the frame is
 (``lino_loc.lost_detection.independent_views``), so that the evidence does not depend on the
-frame rate. The level mu starts at the first observation's x and is learnt (mu += alpha v_t
-(x_t - mu)) only from views seen while no evidence stands (S_t-1 = 0: the in-control level,
-as in a textbook CUSUM; a level that kept learning during a change would follow it). It
-reports a change when ``S_t > evidence`` and then restarts from the new level (S = 0, mu =
-x_t). A drop in novelty (lights back to the mapping light) is not reported: the views fit
+frame rate. The level mu is learnt only from views seen while no evidence stands (S_t-1 =
+0: the in-control level, as in a textbook CUSUM; a level that kept learning during a change
+would follow it), as the running mean of those views until they add up to 1 / alpha views,
+then as an exponentially weighted one:
+
+    n_t = n_t-1 + v_t,    mu += v_t max(alpha, 1 / n_t) (x_t - mu)
+
+(the first observation sets mu = x_t, n = v_t). A level learnt at the rate alpha from the first
+view alone would keep that view's place for about 1 / alpha views: a first view far less
+familiar than its successors (novelty varies several-fold between places) left the detector
+blind to a light switch for a minute of driving (docs/results.md, "The appearance-change
+watch's start"). It reports a change when ``S_t > evidence`` and then restarts from the new
+level (S = 0, mu = x_t, n = v_t). A drop in novelty (lights back to the mapping light) is not reported: the views fit
 better, neither check is misled. Observations without a positive finite novelty are ignored.
 ``ratio`` is relative to the map's own spacing, so it transfers between maps; ``evidence`` is
 in log-novelty x independent views, so it does not depend on the frame rate. How the defaults
@@ -30,8 +38,7 @@ Per channel (``update`` given a mapping channel -> novelty, the view's channels 
 image changes with the light, the disparity of a stereo pair (its geometry) barely does
 (``lino_loc.view_fit.LIGHT_INVARIANT``). The CUSUM above runs on the light-variant channels'
 novelty (the largest of them, when there are several); each light-invariant channel c keeps
-its own level mu_c (learnt as mu is: alpha v_t (x_c,t - mu_c), only while no evidence
-stands) and, while evidence stands (S > 0), the mean rise of its log-novelty over the
+its own level mu_c (learnt as mu is, only while no evidence stands) and, while evidence stands (S > 0), the mean rise of its log-novelty over the
 views since the evidence began (Page's change-point estimate),
 
     r_c = sum_t v_t (x_c,t - mu_c) / sum_t v_t.
@@ -47,7 +54,8 @@ When S passes ``evidence`` the change is classified:
   hear them); counted in ``scene_changes``.
 
 A kidnapping into a mapped place raises neither channel: nothing is reported. Either way the
-detector restarts from the new level (S = 0, mu = x_t, mu_c = x_c,t). A light-invariant
+detector restarts from the new level (S = 0, mu = x_t, mu_c = x_c,t, their means' views from
+this one). A light-invariant
 channel missing from a view (nan, or not in the mapping) adds nothing to r_c; with no view of
 it during the evidence, the change is ``light``. A single novelty (a float) is the channel of
 intensity alone, as before.
@@ -107,16 +115,17 @@ class _SteadyChannel:
     """A light-invariant channel's level and its rise since the evidence began."""
 
     level: float = math.nan  # mu_c, log-novelty
+    learnt: float = 0.0  # n_c: the in-control views mu_c was learnt from
     rise: float = 0.0  # sum v_t (x_c,t - mu_c) since the evidence began
     views: float = 0.0  # sum v_t over those views
 
     def observe(self, x: float, v: float, in_control: bool, alpha: float) -> None:
         if not math.isfinite(self.level):
-            self.level = x
+            self.level, self.learnt = x, v
             return
         if in_control:
             self.rise = self.views = 0.0
-            self.level += alpha * v * (x - self.level)
+            self.level, self.learnt = learn_level(self.level, self.learnt, x, v, alpha)
         else:
             self.rise += v * (x - self.level)
             self.views += v
@@ -136,6 +145,7 @@ class AppearanceChangeDetector:
     steady_ratio: float = STEADY_RATIO  # a light-invariant channel's largest steady rise
     score: float = field(default=0.0, init=False)  # S_t
     level: float = field(default=math.nan, init=False)  # mu_t, log-novelty
+    learnt: float = field(default=0.0, init=False)  # n_t: the in-control views mu was learnt from
     changes: int = field(default=0, init=False)  # light changes reported
     scene_changes: int = field(default=0, init=False)  # changes of the place itself
     last_change: Change | None = field(default=None, init=False)
@@ -159,16 +169,16 @@ class AppearanceChangeDetector:
         for name, n in invariant.items():
             self.steady.setdefault(name, _SteadyChannel()).observe(math.log(n), v, in_control, self.alpha)
         if not math.isfinite(self.level):
-            self.level = x
+            self.level, self.learnt = x, v
             return False
         self.score = max(0.0, self.score + v * (x - self.level - math.log(self.ratio)))
         if in_control:
-            self.level += self.alpha * v * (x - self.level)
+            self.level, self.learnt = learn_level(self.level, self.learnt, x, v, self.alpha)
         if self.score <= self.evidence:
             return False
-        return self._classify(x, invariant)
+        return self._classify(x, v, invariant)
 
-    def _classify(self, x: float, invariant: Mapping[str, float]) -> bool:
+    def _classify(self, x: float, v: float, invariant: Mapping[str, float]) -> bool:
         """The evidence passed: light or scene (module docstring); restart from this view."""
         rose = any(ch.mean_rise > math.log(self.steady_ratio) for ch in self.steady.values())
         self.last_change = "scene" if rose else "light"
@@ -177,12 +187,22 @@ class AppearanceChangeDetector:
         else:
             self.changes += 1
         self.score = 0.0
-        self.level = x
+        self.level, self.learnt = x, v
         for name, ch in self.steady.items():
             ch.rise = ch.views = 0.0
             if name in invariant:
-                ch.level = math.log(invariant[name])
+                ch.level, ch.learnt = math.log(invariant[name]), v
         return not rose
+
+
+def learn_level(level: float, learnt: float, x: float, v: float, alpha: float) -> tuple[float, float]:
+    """One in-control view x of weight v (independent views) taught to a level learnt from
+    ``learnt`` views: the running mean until 1 / alpha views, then the exponentially weighted
+    mean of rate alpha per view (module docstring). Returns (level, learnt)."""
+    learnt += v
+    if learnt <= 0.0:
+        return level, learnt
+    return level + v * max(alpha, 1.0 / learnt) * (x - level), learnt
 
 
 def _valid(novelty: float) -> bool:

@@ -49,6 +49,27 @@ def test_evidence_counts_independent_views_not_frames() -> None:
     assert not any(still.update(10.0, 0.0) for _ in range(100))  # a robot standing still: no views
 
 
+def test_a_strange_first_view_does_not_blind_the_detector() -> None:
+    """The level is the running mean of the in-control views until 1 / alpha of them: a first
+    view three times as novel as the next eighteen (a place unlike the rest) weighs 1 / 19, mu
+    = log 3 / 19, and a rise to 2.5 is then found after the closed-form count of views. Learnt at
+    the rate alpha from that first view, mu would still be log 3 x 0.95^18 = 0.44 and the rise
+    would never be found (log 2.5 - 0.44 < log 1.65: the service's light-switch test waited 30 s
+    in vain on CI)."""
+    det = AppearanceChangeDetector(ratio=1.65, evidence=5.0, alpha=0.05)
+    assert not det.update(3.0)
+    assert not any(det.update(1.0) for _ in range(18))
+    assert det.level == pytest.approx(math.log(3.0) / 19)
+    fired = [k for k in range(200) if det.update(2.5)]
+    # the first changed view is in control and teaches mu at 1/20 = alpha; then S grows by a
+    # fixed step
+    mu1 = math.log(3.0) / 19
+    mu2 = mu1 + (math.log(2.5) - mu1) / 20
+    s1, step = math.log(2.5) - mu1 - math.log(1.65), math.log(2.5) - mu2 - math.log(1.65)
+    n = 1 + math.floor((5.0 - s1) / step) + 1  # first n with S_n = s1 + (n - 1) step > 5
+    assert fired[:1] == [n - 1] and n < 20
+
+
 def test_less_novel_views_and_missing_novelty_are_not_changes() -> None:
     det = AppearanceChangeDetector()
     for _ in range(100):
