@@ -34,6 +34,7 @@ from lino_loc.dataset import Dataset, require_valid
 from lino_loc.pca import PCA_METHODS
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from lino_loc.virtual_views import offsets
+from services.commands import map_check_cmd
 from services.progress import Progress
 
 log = logging.getLogger("lino_loc.map")
@@ -206,3 +207,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("map", help="map file")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=_info)
+
+    map_check_cmd.register(msub)
