@@ -48,28 +48,12 @@ def residual_fraction(pca: PCA, X: np.ndarray, mean: np.ndarray | None = None) -
     return np.clip(frac, 0.0, 1.0)
 
 
-def update_pca(pca: PCA, n_old: int, X: np.ndarray, n_components: int | None = None) -> PCA:
-    """The PCA of the ``n_old`` rows ``pca`` was fitted on plus the rows of ``X`` (m, D),
-    by the incremental update above. ``n_components`` (default the current d) may be larger
-    than d, up to d + m. Raises LinoLocError for a shape mismatch, ``n_old`` < 1, no new rows
-    or non-finite data."""
-    B = np.asarray(X, dtype=np.float64)
-    if B.ndim != 2 or B.shape[1] != pca.dim:
-        raise LinoLocError(f"update_pca: new rows of shape {B.shape}, the basis has {pca.dim} pixels")
+def _update(
+    mu_a: np.ndarray, V: np.ndarray, s_a: np.ndarray, n_old: int, B: np.ndarray, d: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of the update (float64): (mean, components (d, D), singular values (d,))."""
+    d_old = V.shape[0]
     m = B.shape[0]
-    if m < 1:
-        raise LinoLocError("update_pca: no new rows")
-    if n_old < 1:
-        raise LinoLocError(f"update_pca: n_old must be >= 1, got {n_old}")
-    if not np.all(np.isfinite(B)):
-        raise LinoLocError("update_pca: new rows contain NaN or infinite values")
-    d_old = pca.n_components
-    d = d_old if n_components is None else int(n_components)
-    if not 1 <= d <= d_old + m:
-        raise LinoLocError(f"update_pca: {d} components asked, at most {d_old + m} possible")
-    V = np.asarray(pca.components, dtype=np.float64)
-    mu_a = np.asarray(pca.mean, dtype=np.float64)
-    s_a = np.sqrt(np.maximum(np.asarray(pca.explained_variance, dtype=np.float64), 0.0) * n_old)
     n = n_old + m
     mu_b = B.mean(axis=0)
     mu = (n_old * mu_a + m * mu_b) / n
@@ -87,12 +71,50 @@ def update_pca(pca: PCA, n_old: int, X: np.ndarray, n_components: int | None = N
     _, s, Vt = np.linalg.svd(K, full_matrices=False)
     d = min(d, len(s))
     comps = Vt[:d] @ np.vstack([V, Q])
-    # re-orthonormalise against rounding (the rows are orthonormal up to ~1e-15)
+    # re-orthonormalise against rounding (the rows are orthonormal up to ~1e-15 per step)
     qq, rr = np.linalg.qr(comps.T)
-    comps = (qq * np.sign(np.diag(rr))).T
-    comps = _sign_fix(comps)
+    comps = (qq * np.where(np.diag(rr) < 0, -1.0, 1.0)).T
+    return mu, comps, s[:d]
+
+
+def update_pca(
+    pca: PCA, n_old: int, X: np.ndarray, n_components: int | None = None, block: int | None = None
+) -> PCA:
+    """The PCA of the ``n_old`` rows ``pca`` was fitted on plus the rows of ``X`` (m, D),
+    by the incremental update above. ``n_components`` (default the current d) may be larger
+    than d, up to d + m. ``block``: add the rows in blocks of this many (None: all at once).
+    One step costs O(D (d + b)^2 + (d + b)^3) for b rows, so blocks of a few d are much
+    cheaper than one step of m >> d rows; each block truncates to d components again
+    (the sequential KL update), which all at once does only once. Raises LinoLocError for
+    a shape mismatch, ``n_old`` < 1, no new rows, ``block`` < 1 or non-finite data."""
+    B = np.asarray(X, dtype=np.float64)
+    if B.ndim != 2 or B.shape[1] != pca.dim:
+        raise LinoLocError(f"update_pca: new rows of shape {B.shape}, the basis has {pca.dim} pixels")
+    m = B.shape[0]
+    if m < 1:
+        raise LinoLocError("update_pca: no new rows")
+    if n_old < 1:
+        raise LinoLocError(f"update_pca: n_old must be >= 1, got {n_old}")
+    if block is not None and block < 1:
+        raise LinoLocError(f"update_pca: block must be >= 1, got {block}")
+    if not np.all(np.isfinite(B)):
+        raise LinoLocError("update_pca: new rows contain NaN or infinite values")
+    d_old = pca.n_components
+    d = d_old if n_components is None else int(n_components)
+    if not 1 <= d <= d_old + m:
+        raise LinoLocError(f"update_pca: {d} components asked, at most {d_old + m} possible")
+    V = np.asarray(pca.components, dtype=np.float64)
+    mu = np.asarray(pca.mean, dtype=np.float64)
+    s = np.sqrt(np.maximum(np.asarray(pca.explained_variance, dtype=np.float64), 0.0) * n_old)
+    n = n_old
+    step = m if block is None else int(block)
+    for lo in range(0, m, step):
+        chunk = B[lo : lo + step]
+        mu, V, s = _update(mu, V, s, n, chunk, d)
+        n += chunk.shape[0]
+    comps = _sign_fix(V)
     return PCA(
         mean=mu.astype(np.float32),
         components=np.ascontiguousarray(comps, dtype=np.float32),
-        explained_variance=(s[:d] ** 2 / n).astype(np.float32),
+        explained_variance=(s**2 / n).astype(np.float32),
     )

@@ -37,7 +37,8 @@ def test_exact_when_old_data_are_low_rank() -> None:
     np.testing.assert_allclose(upd.components @ upd.components.T, np.eye(4), atol=1e-5)
 
 
-def test_new_directions_are_learned_close_to_batch() -> None:
+@pytest.mark.parametrize("block", [None, 20])
+def test_new_directions_are_learned_close_to_batch(block: int | None) -> None:
     """New rows in directions the old basis lacks (a new light): the update finds them. Its
     subspace is within a few degrees of the batch SVD's on the leading directions, and its
     reconstruction error of all rows within 5 % of the batch's (the old tail is lost)."""
@@ -51,7 +52,7 @@ def test_new_directions_are_learned_close_to_batch() -> None:
     d = 10
     old = fit_pca(A, d, method="svd")
     assert residual_fraction(old, B).mean() > 0.3  # the old basis misses the new light
-    upd = update_pca(old, len(A), B)
+    upd = update_pca(old, len(A), B, block=block)
     ref = fit_pca(np.vstack([A, B]), d, method="svd")
     ang = np.degrees(principal_angles(upd.components, ref.components))
     assert ang[:8].max() < 2.0
@@ -85,3 +86,17 @@ def test_bad_input() -> None:
         update_pca(pca, 20, np.full((2, 10), np.nan))
     with pytest.raises(LinoLocError, match="n_old"):
         update_pca(pca, 0, np.zeros((2, 10)))
+
+
+@pytest.mark.parametrize("block", [1, 7, 40])
+def test_blocks_match_one_step_on_low_rank_data(block: int) -> None:
+    """Blocks of any size give the batch result when everything has rank <= d."""
+    rng = np.random.default_rng(7)
+    L = np.linalg.qr(rng.standard_normal((120, 3)))[0].T * 5
+    A = _data(50, L, 1.0, 1.0, 0.0, rng)
+    B = _data(45, L, 1.5, 1.0, 0.0, rng)
+    ref = fit_pca(np.vstack([A, B]), 3, method="svd")
+    upd = update_pca(fit_pca(A, 3, method="svd"), len(A), B, block=block)
+    assert np.degrees(principal_angles(upd.components, ref.components)).max() < 1e-2
+    np.testing.assert_allclose(upd.explained_variance, ref.explained_variance, rtol=1e-3)
+    np.testing.assert_allclose(upd.mean, ref.mean, atol=1e-5)
