@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -106,7 +106,7 @@ def _total_variance(mean_a: np.ndarray, tv_a: float, n_a: int, X: np.ndarray) ->
 
 def extend_map(
     amap: AppearanceMap,
-    dataset: Dataset,
+    dataset: Dataset | Sequence[Dataset],
     *,
     condition: str | None = None,
     name: str | None = None,
@@ -115,9 +115,10 @@ def extend_map(
     progress: ProgressFn | None = None,
     workers: int | None = None,
 ) -> tuple[AppearanceMap, ExtendReport]:
-    """A new map: ``amap`` plus the rows of ``dataset`` (those of ``condition`` if given) as
-    one session named ``name`` (default: the condition, else the dataset's name). ``amap``
-    is not modified. LinoLocError when the cameras differ, no row is left, the map lacks an
+    """A new map: ``amap`` plus the rows of ``dataset`` (a dataset, or several, e.g. the
+    parts the daemon's map refresh wrote, taken in order; their rows of ``condition`` if
+    given) as one session named ``name`` (default: the condition, else the first dataset's
+    name). ``amap`` is not modified. LinoLocError when the cameras differ, no row is left, the map lacks an
     intensity channel, or the dataset lacks what a channel of the map needs."""
     if refit not in ("auto", "always", "never"):
         raise LinoLocError(f"refit: expected auto, always or never, got {refit!r}")
@@ -125,21 +126,28 @@ def extend_map(
         raise LinoLocError(f"refit ratio must be positive, got {refit_ratio}")
     if "intensity" not in amap.channels:
         raise LinoLocError("map extend: the map has no intensity channel")
-    cam, mcam = dataset.meta.camera, amap.camera
-    if (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) != (mcam.width, mcam.height, mcam.fx, mcam.fy,
-                                                                   mcam.cx, mcam.cy):
-        raise LinoLocError(f"{dataset.root}: camera {cam.model_dump()} differs from the map's {mcam.model_dump()}")
-    ds = dataset
+    sets = [dataset] if isinstance(dataset, Dataset) else list(dataset)
+    if not sets:
+        raise LinoLocError("map extend: no dataset given")
+    mcam = amap.camera
+    for d in sets:
+        cam = d.meta.camera
+        if (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) != (mcam.width, mcam.height, mcam.fx,
+                                                                       mcam.fy, mcam.cx, mcam.cy):
+            raise LinoLocError(f"{d.root}: camera {cam.model_dump()} differs from the map's {mcam.model_dump()}")
     if condition is not None:
-        ds = dataset.where(condition)
-        if len(ds) == 0:
-            have = sorted({c for c in dataset.conditions if c is not None})
-            raise LinoLocError(f"{dataset.root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
-    conds = sorted({c for c in ds.conditions if c is not None})
+        kept = [d.where(condition) for d in sets]
+        if not any(len(d) for d in kept):
+            have = sorted({c for d in sets for c in d.conditions if c is not None})
+            raise LinoLocError(f"{sets[0].root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
+        sets = [d for d in kept if len(d)]
+    ds = sets[0]
+    conds = sorted({c for d in sets for c in d.conditions if c is not None})
     cond = condition or (conds[0] if len(conds) == 1 else None)
     ch = amap.channels["intensity"]
     virtual = _virtual(amap, ch)
-    X = load_vectors(ds, ch.preprocess, ch.size, workers=workers, progress=progress)  # type: ignore[arg-type]
+    X = np.vstack([load_vectors(d, ch.preprocess, ch.size, workers=workers, progress=progress)  # type: ignore[arg-type]
+                   for d in sets])
     if virtual is not None:
         X = augment_vectors(X, ch.size, virtual.K, virtual.offsets, virtual.margin)
     n_old, n_new = len(amap), X.shape[0]
@@ -169,8 +177,10 @@ def extend_map(
     after = float(residual_fraction(pca, X).mean())
     channels = {"intensity": replace(ch, pca=pca, features=np.vstack([old_feats, new_feats]), params=params)}
     if "disparity" in amap.channels:
-        channels["disparity"] = _extend_disparity(amap.channels["disparity"], ds, virtual, n_new, progress, workers)
-    poses = ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual.offsets)
+        channels["disparity"] = _extend_disparity(amap.channels["disparity"], sets, virtual, n_new, progress,
+                                                  workers)
+    rows = np.vstack([d.poses for d in sets])
+    poses = rows.copy() if virtual is None else augment_poses(rows, virtual.offsets)
     sessions = amap.session_list()
     sess = SessionInfo(
         name=name or cond or ds.meta.name or os.path.basename(str(ds.root)),
@@ -197,17 +207,19 @@ def extend_map(
 
 
 def _extend_disparity(
-    ch: ChannelMap, ds: Dataset, virtual: VirtualHeadings | None, n_new: int,
+    ch: ChannelMap, sets: Sequence[Dataset], virtual: VirtualHeadings | None, n_new: int,
     progress: ProgressFn | None, workers: int | None,
 ) -> ChannelMap:
     """The disparity channel with the new rows projected onto its basis (never refitted)."""
-    if not (ds.has_disparity or ds.has_depth):
-        raise LinoLocError(f"{ds.root}: the map has a disparity channel but this dataset has no disparity or depth")
+    for ds in sets:
+        if not (ds.has_disparity or ds.has_depth):
+            raise LinoLocError(f"{ds.root}: the map has a disparity channel but this dataset has no disparity "
+                               "or depth")
     frac = float(ch.params.get("min_valid_fraction", 0.25) or 0.0)
-    X = _disparity_rows(ds, ch.size, frac, progress, workers)
+    X = np.vstack([_disparity_rows(ds, ch.size, frac, progress, workers) for ds in sets])
     if virtual is not None:
         X = augment_vectors(X, ch.size, virtual.K, virtual.offsets, virtual.margin, disparity=True)
     if X.shape[0] != n_new:
-        raise LinoLocError(f"{ds.root}: {X.shape[0]} disparity rows for {n_new} image rows")
+        raise LinoLocError(f"{sets[0].root}: {X.shape[0]} disparity rows for {n_new} image rows")
     Y = np.asarray(ch.pca.project(X), dtype=np.float32)
     return replace(ch, features=np.vstack([np.asarray(ch.features, dtype=np.float32), Y]))

@@ -151,3 +151,15 @@ def test_cli_extend_and_info(tube: tuple[AppearanceMap, Path], bulb: Dataset, tm
     assert cli.main(["map", "extend", str(path), str(bulb.root), "--out", str(path)]) == 2
     _, err = capsys.readouterr()
     assert len(err.strip().splitlines()) == 1 and "--out must differ" in err
+
+
+def test_several_datasets_make_one_session(tube: tuple[AppearanceMap, Path], tmp_path: Path) -> None:
+    """The parts the daemon's map refresh writes: one session, rows in order."""
+    amap, _ = tube
+    a = Dataset.open(_dataset(tmp_path / "p1", "bulb", np.array([0.5, 1.0]), 3))
+    b = Dataset.open(_dataset(tmp_path / "p2", "bulb", np.array([2.0]), 4))
+    new, rep = extend_map(amap, [a, b], refit="never", workers=1)
+    assert rep.session.n_entries == len(a) + len(b) and rep.session.condition == "bulb"
+    np.testing.assert_array_equal(new.poses[len(amap):], np.vstack([a.poses, b.poses]))
+    ch = new.channels["intensity"]
+    np.testing.assert_allclose(ch.features[-1], ch.project(b.image(len(b) - 1)), atol=1e-3)

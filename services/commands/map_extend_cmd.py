@@ -1,9 +1,10 @@
 """`lino-loc map extend`: add a survey session to a map without a rebuild.
 
-    lino-loc map extend MAP DATASET --out MAP2 [--condition C] [--name NAME]
+    lino-loc map extend MAP DATASET [DATASET ...] --out MAP2 [--condition C] [--name NAME]
                         [--refit auto|always|never] [--refit-ratio R] [--json]
 
-The dataset's images (those of ``--condition`` if given) become a new session of the map
+The datasets' images (those of ``--condition`` if given; several datasets, e.g. the parts
+the daemon's ``[map_refresh]`` wrote, make one session) become a new session of the map
 (``lino_loc.map_extend``): projected onto the map's basis, or with ``auto`` (the default)
 the basis refitted incrementally first when the images are poorly represented by it (their
 mean residual fraction above ``--refit-ratio`` times the map's own). The dataset is checked
@@ -32,15 +33,16 @@ def _extend(args: argparse.Namespace) -> int:
     if out.resolve() == Path(args.map).resolve():
         raise LinoLocError(f"{out}: --out must differ from the map it extends")
     amap = AppearanceMap.load(args.map)
-    ds = Dataset.open(args.dataset)
-    bar = Progress("dataset check")
-    try:
-        require_valid(ds, progress=bar.update, columns=map_file_columns(ds, tuple(amap.channels)))
-    finally:
-        bar.close()
+    sets = [Dataset.open(d) for d in args.dataset]
+    for ds in sets:
+        bar = Progress("dataset check")
+        try:
+            require_valid(ds, progress=bar.update, columns=map_file_columns(ds, tuple(amap.channels)))
+        finally:
+            bar.close()
     bar = Progress("map extend")
     try:
-        new, rep = extend_map(amap, ds, condition=args.condition, name=args.name, refit=args.refit,
+        new, rep = extend_map(amap, sets, condition=args.condition, name=args.name, refit=args.refit,
                               refit_ratio=args.refit_ratio, progress=bar.update)
     finally:
         bar.close()
@@ -83,7 +85,7 @@ def register(msub: argparse._SubParsersAction) -> None:
     """Add ``extend`` to the ``lino-loc map`` actions."""
     p = msub.add_parser("extend", help="add a survey session (another light, ...) to a map without a rebuild")
     p.add_argument("map", help="map file to extend (not modified)")
-    p.add_argument("dataset", help="dataset folder of the new session")
+    p.add_argument("dataset", nargs="+", help="dataset folder(s) of the new session")
     p.add_argument("--out", required=True, help="map file to write (.npz)")
     p.add_argument("--condition", default=None, help="use only the dataset's rows of this condition")
     p.add_argument("--name", default=None, help="session name (default: the condition, else the dataset's name)")
