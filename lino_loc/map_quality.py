@@ -1,7 +1,9 @@
 """Map quality before deployment: coverage, ambiguity and leave-out error of an appearance map.
 
 The plan (floor) is cut into square cells of ``cell_m`` metres (default: the map's own
-position spacing, the median distance from a map position to its nearest other one) and
+position spacing, the median distance from a map position to its nearest other one; for a
+map of several sessions the largest of theirs, so that a sparser session's grid leaves no
+false holes) and
 headings into ``sectors`` sectors (default 8 of 45 deg, named east, north-east, north, ...:
 heading 0 = +x = east, CCW, REP-103). Three measures, per map entry and per cell:
 
@@ -205,7 +207,8 @@ def check_map(
         raise LinoLocError("map check: the map has no intensity channel")
     poses = np.asarray(amap.poses, dtype=np.float64)
     xy = poses[:, :2]
-    cell = th.cell_m or position_spacing(xy)
+    cell = th.cell_m or max(position_spacing(xy[sess.first_entry : sess.first_entry + sess.n_entries])
+                            for sess in amap.session_list())
     grid = _Grid(xy, cell)
     ix, iy, _ = grid.index(xy)
     names = sector_names(th.sectors)

@@ -123,3 +123,20 @@ def test_cli_bad_map_is_one_line(tmp_path: Path, map_cli: None, capsys: pytest.C
     code = cli.main(["map", "check", str(bad)])
     _, err = capsys.readouterr()
     assert code == 2 and len(err.strip().splitlines()) == 1 and "bad.npz" in err
+
+
+def test_cell_of_a_map_of_two_sessions_is_the_sparser_spacing() -> None:
+    """A 0.5 m survey extended by a 0.75 m one: cells of 0.75 m, no false holes."""
+    from lino_loc.appearance_map import SessionInfo
+
+    rng = np.random.default_rng(4)
+    a = _grid_poses()
+    xs, ys, ts = np.arange(0, 5.01, 0.75), np.arange(0, 2.01, 0.75), np.radians(np.arange(0, 360, 30))
+    b = np.array([(x, y, t) for x in xs for y in ys for t in ts])
+    p = np.vstack([a, b])
+    amap = _map(p, _features(p, rng))
+    amap.sessions = [SessionInfo(name="tube", first_entry=0, n_entries=len(a)),
+                     SessionInfo(name="bulb", first_entry=len(a), n_entries=len(b), basis="projected")]
+    q = check_map(amap)
+    assert q.cell_m == pytest.approx(0.75)
+    assert q.position_holes == 0 and q.heading_holes == 0
