@@ -310,6 +310,20 @@ def _checksum(arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+def _check_sessions(path: Path, sessions: Sequence[SessionInfo], n: int) -> None:
+    """LinoLocError naming ``path`` unless ``sessions`` (if any) tile the n entries in order."""
+    if not sessions:
+        return
+    at = 0
+    for k, sess in enumerate(sessions):
+        if sess.first_entry != at:
+            raise LinoLocError(f"{path}: corrupt map file: session {k} ({sess.name!r}) starts at entry "
+                               f"{sess.first_entry}, expected {at}")
+        at += sess.n_entries
+    if at != n:
+        raise LinoLocError(f"{path}: corrupt map file: the sessions hold {at} entries but the map has {n}")
+
+
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
@@ -573,14 +587,7 @@ class AppearanceMap:
                 params={k: v for k, v in ch.params.items()},
             )
         _check_content(path, header, arrays)
-        if header.sessions:
-            at = 0
-            for k, sess in enumerate(header.sessions):
-                if sess.first_entry != at:
-                    raise bad(f"session {k} ({sess.name!r}) starts at entry {sess.first_entry}, expected {at}")
-                at += sess.n_entries
-            if at != n:
-                raise bad(f"the sessions hold {at} entries but the map has {n}")
+        _check_sessions(path, header.sessions, n)
         return cls(
             poses=poses,
             channels=channels,

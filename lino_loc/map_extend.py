@@ -120,27 +120,8 @@ def extend_map(
     given) as one session named ``name`` (default: the condition, else the first dataset's
     name). ``amap`` is not modified. LinoLocError when the cameras differ, no row is left, the map lacks an
     intensity channel, or the dataset lacks what a channel of the map needs."""
-    if refit not in ("auto", "always", "never"):
-        raise LinoLocError(f"refit: expected auto, always or never, got {refit!r}")
-    if not refit_ratio > 0:
-        raise LinoLocError(f"refit ratio must be positive, got {refit_ratio}")
-    if "intensity" not in amap.channels:
-        raise LinoLocError("map extend: the map has no intensity channel")
-    sets = [dataset] if isinstance(dataset, Dataset) else list(dataset)
-    if not sets:
-        raise LinoLocError("map extend: no dataset given")
-    mcam = amap.camera
-    for d in sets:
-        cam = d.meta.camera
-        if (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) != (mcam.width, mcam.height, mcam.fx,
-                                                                       mcam.fy, mcam.cx, mcam.cy):
-            raise LinoLocError(f"{d.root}: camera {cam.model_dump()} differs from the map's {mcam.model_dump()}")
-    if condition is not None:
-        kept = [d.where(condition) for d in sets]
-        if not any(len(d) for d in kept):
-            have = sorted({c for d in sets for c in d.conditions if c is not None})
-            raise LinoLocError(f"{sets[0].root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
-        sets = [d for d in kept if len(d)]
+    _check_args(amap, refit, refit_ratio)
+    sets = _session_rows(amap, [dataset] if isinstance(dataset, Dataset) else list(dataset), condition)
     ds = sets[0]
     conds = sorted({c for d in sets for c in d.conditions if c is not None})
     cond = condition or (conds[0] if len(conds) == 1 else None)
@@ -158,21 +139,10 @@ def extend_map(
         do_refit = before > refit_ratio * own if math.isfinite(own) else False
     else:
         do_refit = refit == "always"
-    params = dict(ch.params)
     if do_refit:
-        new_pca = update_pca(ch.pca, n_old, X, block=2 * ch.pca.n_components)
-        old = ch.pca
-        # re-project the old entries from what the map keeps of them (exact within the old span)
-        M = new_pca.components.astype(np.float64) @ old.components.astype(np.float64).T  # (d', d)
-        shift = new_pca.components.astype(np.float64) @ (old.mean.astype(np.float64) - new_pca.mean.astype(np.float64))
-        old_feats = (np.asarray(ch.features, dtype=np.float64) @ M.T + shift).astype(np.float32)
-        tv = params.get("total_variance")
-        if isinstance(tv, int | float):
-            params["total_variance"] = _total_variance(old.mean, float(tv), n_old, X)
-        pca: PCA = new_pca
+        pca, old_feats, params = _refit(ch, n_old, X)
     else:
-        pca = ch.pca
-        old_feats = np.asarray(ch.features, dtype=np.float32)
+        pca, old_feats, params = ch.pca, np.asarray(ch.features, dtype=np.float32), dict(ch.params)
     new_feats = pca.project(X)
     after = float(residual_fraction(pca, X).mean())
     channels = {"intensity": replace(ch, pca=pca, features=np.vstack([old_feats, new_feats]), params=params)}
@@ -180,30 +150,61 @@ def extend_map(
         channels["disparity"] = _extend_disparity(amap.channels["disparity"], sets, virtual, n_new, progress,
                                                   workers)
     rows = np.vstack([d.poses for d in sets])
-    poses = rows.copy() if virtual is None else augment_poses(rows, virtual.offsets)
-    sessions = amap.session_list()
     sess = SessionInfo(
-        name=name or cond or ds.meta.name or os.path.basename(str(ds.root)),
-        condition=cond,
-        source=ds.meta.source or str(ds.root),
-        first_entry=n_old,
-        n_entries=n_new,
-        added=_utc_now(),
-        basis="refitted" if do_refit else "projected",
-        residual_fraction=min(1.0, max(0.0, before)),
+        name=name or cond or ds.meta.name or os.path.basename(str(ds.root)), condition=cond,
+        source=ds.meta.source or str(ds.root), first_entry=n_old, n_entries=n_new, added=_utc_now(),
+        basis="refitted" if do_refit else "projected", residual_fraction=min(1.0, max(0.0, before)),
     )
-    out = AppearanceMap(
-        poses=np.vstack([np.asarray(amap.poses, dtype=np.float64), poses]),
-        channels=channels,
-        camera=amap.camera,
-        source=amap.source,
-        name=amap.name,
-        condition=amap.condition,
-        created=amap.created,
-        sessions=[*sessions, sess],
-    )
+    out = replace(amap, poses=np.vstack([np.asarray(amap.poses, dtype=np.float64),
+                                         rows if virtual is None else augment_poses(rows, virtual.offsets)]),
+                  channels=channels, path=None, sessions=[*amap.session_list(), sess])
     return out, ExtendReport(session=sess, refitted=do_refit, residual_before=before, residual_after=after,
                              map_residual=own, entries_before=n_old, entries_after=len(out))
+
+
+def _check_args(amap: AppearanceMap, refit: str, refit_ratio: float) -> None:
+    if refit not in ("auto", "always", "never"):
+        raise LinoLocError(f"refit: expected auto, always or never, got {refit!r}")
+    if not refit_ratio > 0:
+        raise LinoLocError(f"refit ratio must be positive, got {refit_ratio}")
+    if "intensity" not in amap.channels:
+        raise LinoLocError("map extend: the map has no intensity channel")
+
+
+def _session_rows(amap: AppearanceMap, sets: list[Dataset], condition: str | None) -> list[Dataset]:
+    """The datasets of the new session, each with its rows of ``condition`` (those left
+    empty dropped); LinoLocError for none, a camera other than the map's, or no row left."""
+    if not sets:
+        raise LinoLocError("map extend: no dataset given")
+    mcam = amap.camera
+    for d in sets:
+        cam = d.meta.camera
+        if (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) != (mcam.width, mcam.height, mcam.fx,
+                                                                       mcam.fy, mcam.cx, mcam.cy):
+            raise LinoLocError(f"{d.root}: camera {cam.model_dump()} differs from the map's {mcam.model_dump()}")
+    if condition is None:
+        return sets
+    kept = [d.where(condition) for d in sets]
+    if not any(len(d) for d in kept):
+        have = sorted({c for d in sets for c in d.conditions if c is not None})
+        raise LinoLocError(f"{sets[0].root}: no rows with condition {condition!r} (have: {', '.join(have) or 'none'})")
+    return [d for d in kept if len(d)]
+
+
+def _refit(ch: ChannelMap, n_old: int, X: np.ndarray) -> tuple[PCA, np.ndarray, dict]:
+    """The basis updated with the new rows X (blocks of 2 d), the old entries re-projected
+    from what the map keeps of them (exact within the old span), and the header parameters
+    with the total variance of old and new rows together."""
+    old = ch.pca
+    new_pca = update_pca(old, n_old, X, block=2 * old.n_components)
+    M = new_pca.components.astype(np.float64) @ old.components.astype(np.float64).T  # (d', d)
+    shift = new_pca.components.astype(np.float64) @ (old.mean.astype(np.float64) - new_pca.mean.astype(np.float64))
+    old_feats = (np.asarray(ch.features, dtype=np.float64) @ M.T + shift).astype(np.float32)
+    params = dict(ch.params)
+    tv = params.get("total_variance")
+    if isinstance(tv, int | float):
+        params["total_variance"] = _total_variance(old.mean, float(tv), n_old, X)
+    return new_pca, old_feats, params
 
 
 def _extend_disparity(

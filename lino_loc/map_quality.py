@@ -216,54 +216,15 @@ def check_map(
     faced = np.zeros((grid.ny, grid.nx, th.sectors), dtype=bool)
     faced[iy, ix, sec] = True
     occupied = faced.any(axis=2)
-    findings: list[Finding] = []
-    # ---- coverage
-    for k, name in enumerate(names):
-        for area in _areas(occupied & ~faced[:, :, k], th.min_hole_cells):
-            bx, by = grid.bounds(area)
-            findings.append(Finding(kind="heading_hole", x=bx, y=by, cells=len(area), sector=name,
-                                    message=f"no views facing {name} in {_where(bx, by)} ({len(area)} cells "
-                                            f"of {cell:.2f} m): survey these headings"))
-    holes = ndimage.binary_fill_holes(occupied) & ~occupied
-    for area in _areas(holes, th.min_hole_cells):
-        bx, by = grid.bounds(area)
-        findings.append(Finding(kind="position_hole", x=bx, y=by, cells=len(area),
-                                message=f"no views at all in {_where(bx, by)} ({len(area)} cells), inside "
-                                        "the mapped area: furniture there? if not, survey it"))
-    # ---- ambiguity
-    feats = np.asarray(amap.channels["intensity"].features, dtype=np.float64)
-    nn = nearest_other_position(feats, xy, feats, xy)
-    dist = np.where(nn >= 0, np.hypot(*(xy[np.maximum(nn, 0)] - xy).T), 0.0)
-    amb = dist > th.ambiguous_m
-    count = np.zeros((grid.ny, grid.nx))
-    n_amb = np.zeros((grid.ny, grid.nx))
-    np.add.at(count, (iy, ix), 1.0)
-    np.add.at(n_amb, (iy, ix), amb.astype(float))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        share = np.where(count > 0, n_amb / np.maximum(count, 1), np.nan)
-    for area in _areas(np.nan_to_num(share, nan=0.0) > th.ambiguous_share, th.min_area_cells):
-        bx, by = grid.bounds(area)
-        s = float(n_amb[area[:, 0], area[:, 1]].sum() / count[area[:, 0], area[:, 1]].sum())
-        findings.append(Finding(kind="ambiguous", x=bx, y=by, cells=len(area), value=s,
-                                message=f"views in {_where(bx, by)} look like views more than "
-                                        f"{th.ambiguous_m:g} m away ({100 * s:.0f} % of its {int(count[area[:, 0], area[:, 1]].sum())} "
-                                        "entries): expect global localization to hesitate here; add views or "
-                                        "landmarks, or use the disparity channel"))
-    # ---- leave-out
+    findings, holes = _coverage_findings(grid, faced, names, th)
+    amb, share, amb_findings = _ambiguity(amap, grid, th)
+    findings += amb_findings
     leave: dict[str, float] | None = None
     leave_grid: list[list[float | None]] | None = None
     if dataset is not None:
         err_cells, leave = _leave_out(amap, dataset, grid, progress)
-        leave_grid = [[None if math.isnan(v) else round(float(v), 4) for v in row] for row in err_cells]
-        for area in _areas(np.nan_to_num(err_cells, nan=0.0) > th.leave_out_m, th.min_area_cells,
-                           bridge=np.isnan(err_cells) & occupied):
-            bx, by = grid.bounds(area)
-            e = float(np.nanmean(err_cells[area[:, 0], area[:, 1]]))
-            findings.append(Finding(kind="leave_out", x=bx, y=by, cells=len(area), value=e,
-                                    message=f"held-out views in {_where(bx, by)} are placed {e:.2f} m off on "
-                                            f"average (over {th.leave_out_m:g} m): the map does not know this area as the "
-                                            "dataset sees it (survey it more densely, or extend the map with "
-                                            "this session if its light differs)"))
+        leave_grid = _rounded(err_cells)
+        findings += _leave_out_findings(grid, err_cells, occupied, th)
     n_pairs = int(occupied.sum()) * th.sectors
     return MapQuality(
         entries=len(amap),
@@ -282,9 +243,79 @@ def check_map(
         findings=findings,
         sector_count=faced.sum(axis=2).astype(int).tolist(),
         position_hole_grid=holes.tolist(),
-        ambiguous_share_grid=[[None if math.isnan(v) else round(float(v), 4) for v in row] for row in share],
+        ambiguous_share_grid=_rounded(share),
         leave_out_grid=leave_grid,
     )
+
+
+def _rounded(grid: np.ndarray) -> list[list[float | None]]:
+    return [[None if math.isnan(v) else round(float(v), 4) for v in row] for row in grid]
+
+
+def _coverage_findings(
+    grid: _Grid, faced: np.ndarray, names: list[str], th: QualityThresholds
+) -> tuple[list[Finding], np.ndarray]:
+    """Heading holes per sector and enclosed empty cells (the mask of the latter too)."""
+    occupied = faced.any(axis=2)
+    findings: list[Finding] = []
+    for k, name in enumerate(names):
+        for area in _areas(occupied & ~faced[:, :, k], th.min_hole_cells):
+            bx, by = grid.bounds(area)
+            findings.append(Finding(kind="heading_hole", x=bx, y=by, cells=len(area), sector=name,
+                                    message=f"no views facing {name} in {_where(bx, by)} ({len(area)} cells "
+                                            f"of {grid.cell:.2f} m): survey these headings"))
+    holes = ndimage.binary_fill_holes(occupied) & ~occupied
+    for area in _areas(holes, th.min_hole_cells):
+        bx, by = grid.bounds(area)
+        findings.append(Finding(kind="position_hole", x=bx, y=by, cells=len(area),
+                                message=f"no views at all in {_where(bx, by)} ({len(area)} cells), inside "
+                                        "the mapped area: furniture there? if not, survey it"))
+    return findings, holes
+
+
+def _ambiguity(amap: AppearanceMap, grid: _Grid, th: QualityThresholds
+               ) -> tuple[np.ndarray, np.ndarray, list[Finding]]:
+    """Per entry whether it is ambiguous, the per-cell share of ambiguous entries (NaN: no
+    entry), and the findings for areas above ``ambiguous_share``."""
+    xy = np.asarray(amap.poses[:, :2], dtype=np.float64)
+    iy_ix = grid.index(xy)
+    ix, iy = iy_ix[0], iy_ix[1]
+    feats = np.asarray(amap.channels["intensity"].features, dtype=np.float64)
+    nn = nearest_other_position(feats, xy, feats, xy)
+    dist = np.where(nn >= 0, np.hypot(*(xy[np.maximum(nn, 0)] - xy).T), 0.0)
+    amb = dist > th.ambiguous_m
+    count = np.zeros((grid.ny, grid.nx))
+    n_amb = np.zeros((grid.ny, grid.nx))
+    np.add.at(count, (iy, ix), 1.0)
+    np.add.at(n_amb, (iy, ix), amb.astype(float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.where(count > 0, n_amb / np.maximum(count, 1), np.nan)
+    findings = []
+    for area in _areas(np.nan_to_num(share, nan=0.0) > th.ambiguous_share, th.min_area_cells):
+        bx, by = grid.bounds(area)
+        n = float(count[area[:, 0], area[:, 1]].sum())
+        s = float(n_amb[area[:, 0], area[:, 1]].sum() / n)
+        findings.append(Finding(kind="ambiguous", x=bx, y=by, cells=len(area), value=s,
+                                message=f"views in {_where(bx, by)} look like views more than "
+                                        f"{th.ambiguous_m:g} m away ({100 * s:.0f} % of its {int(n)} entries): "
+                                        "expect global localization to hesitate here; add views or landmarks, "
+                                        "or use the disparity channel"))
+    return amb, share, findings
+
+
+def _leave_out_findings(grid: _Grid, err_cells: np.ndarray, occupied: np.ndarray,
+                        th: QualityThresholds) -> list[Finding]:
+    findings = []
+    for area in _areas(np.nan_to_num(err_cells, nan=0.0) > th.leave_out_m, th.min_area_cells,
+                       bridge=np.isnan(err_cells) & occupied):
+        bx, by = grid.bounds(area)
+        e = float(np.nanmean(err_cells[area[:, 0], area[:, 1]]))
+        findings.append(Finding(kind="leave_out", x=bx, y=by, cells=len(area), value=e,
+                                message=f"held-out views in {_where(bx, by)} are placed {e:.2f} m off on "
+                                        f"average (over {th.leave_out_m:g} m): the map does not know this area "
+                                        "as the dataset sees it (survey it more densely, or extend the map with "
+                                        "this session if its light differs)"))
+    return findings
 
 
 def _leave_out(

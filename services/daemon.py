@@ -296,9 +296,7 @@ class Daemon:
                                   self.recorder.info, self.live.info),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
-        cam = getattr(amap, "camera", None)
-        self.refresh = (MapRefreshWriter(cfg.map_refresh, cam, getattr(amap, "name", ""))
-                        if cfg.map_refresh.enabled and cam is not None else MapRefreshWriter.off())
+        self.refresh = MapRefreshWriter.for_map(cfg.map_refresh, amap)
 
     # ------------------------------------------------------------------------- lifecycle
     def start(self) -> None:

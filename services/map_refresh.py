@@ -109,6 +109,15 @@ class MapRefreshWriter:
         self._last_error_log = -math.inf
 
     @classmethod
+    def for_map(cls, cfg: MapRefreshConfig, amap: Any) -> MapRefreshWriter:
+        """The writer of the daemon of ``amap`` (its camera and name), or :meth:`off` when the
+        section is off or the map has no camera."""
+        cam = getattr(amap, "camera", None)
+        if not cfg.enabled or not isinstance(cam, CameraInfo):
+            return cls.off()
+        return cls(cfg, cam, str(getattr(amap, "name", "") or ""))
+
+    @classmethod
     def off(cls) -> MapRefreshWriter:
         """A writer that keeps nothing."""
         return cls(MapRefreshConfig(), CameraInfo(width=1, height=1, fx=1, fy=1, cx=0, cy=0))
