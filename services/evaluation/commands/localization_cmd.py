@@ -134,7 +134,8 @@ def _tracking(args: argparse.Namespace) -> int:
 
         amap = AppearanceMap.load(args.map)
         setup = replace(setup, preprocess=(amap.preprocess,), channels=tuple(amap.channels),
-                        features=amap.channels["intensity"].n_features)
+                        features=amap.channels["intensity"].n_features, width=amap.camera.width,
+                        height=amap.camera.height, size=amap.size)
         maps = {amap.preprocess: amap}
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), maps=maps, trajectories=args.trajectories,  # type: ignore[arg-type]
@@ -245,7 +246,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
     p.add_argument("--map", default=None, metavar="FILE",
                    help="localize against this map file (e.g. one extended by `lino-loc map extend`) instead "
-                        "of the rendered tube survey; its preprocessing, features and channels are used")
+                        "of the rendered tube survey; its preprocessing, features, channels, camera size and "
+                        "working size are used (the frames are rendered at its camera's size)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
     add_channels_option(p, ",".join(DEFAULT_CHANNELS))
