@@ -163,3 +163,19 @@ def test_several_datasets_make_one_session(tube: tuple[AppearanceMap, Path], tmp
     np.testing.assert_array_equal(new.poses[len(amap):], np.vstack([a.poses, b.poses]))
     ch = new.channels["intensity"]
     np.testing.assert_allclose(ch.features[-1], ch.project(b.image(len(b) - 1)), atol=1e-3)
+
+
+def test_a_map_with_virtual_headings_extends_with_its_headings(tmp_path: Path, bulb: Dataset) -> None:
+    """Every new image becomes the map's V turned views, as at build time."""
+    import math
+
+    from lino_loc.virtual_views import offsets
+
+    ds = Dataset.open(_dataset(tmp_path / "vt", "tube", np.arange(0, 4.01, 0.25), 5))
+    amap = build_map(ds, n_features=6, size=SIZE, workers=1, virtual_offsets=offsets(math.radians(3), 3))
+    assert len(amap) == 3 * len(ds)
+    new, rep = extend_map(amap, bulb, refit="always", workers=1)
+    assert rep.session.n_entries == 3 * len(bulb)
+    np.testing.assert_allclose(new.poses[len(amap) + 1], bulb.poses[0])  # the middle offset is 0
+    ch = new.channels["intensity"]
+    np.testing.assert_allclose(ch.features[len(amap) + 1], ch.project(bulb.image(0)), atol=1e-3)
