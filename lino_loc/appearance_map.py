@@ -118,8 +118,31 @@ class ChannelHeader(BaseModel):
     arrays: list[str]
 
 
+class SessionInfo(BaseModel):
+    """One survey session of a map (e.g. one lighting): its entries are rows ``first_entry``
+    .. ``first_entry + n_entries - 1`` of the map. ``basis`` says how the session entered
+    the map: ``built`` (the PCA was fitted on it), ``projected`` (projected onto the basis
+    as it was), ``refitted`` (the basis was updated incrementally with it,
+    :mod:`lino_loc.incremental_pca`, and every earlier entry re-projected).
+    ``residual_fraction``: the mean share of the session's centred image energy outside
+    the intensity basis when it was added (before a refit), None for ``built``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    condition: str | None = None
+    source: str = ""
+    first_entry: int = Field(ge=0)
+    n_entries: int = Field(ge=1)
+    added: str = ""
+    basis: Literal["built", "projected", "refitted"] = "built"
+    residual_fraction: float | None = Field(default=None, ge=0, le=1)
+
+
 class MapHeader(BaseModel):
-    """The JSON header of a map file (dict-able with ``model_dump``)."""
+    """The JSON header of a map file (dict-able with ``model_dump``). ``sessions`` is empty
+    for a map of one survey (maps written before sessions existed): see
+    :meth:`AppearanceMap.session_list`."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -133,6 +156,7 @@ class MapHeader(BaseModel):
     n_images: int = Field(ge=1)
     camera: CameraInfo
     channels: dict[str, ChannelHeader]
+    sessions: list[SessionInfo] = []
     sha256: str = ""
 
 
@@ -286,6 +310,20 @@ def _checksum(arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+def _check_sessions(path: Path, sessions: Sequence[SessionInfo], n: int) -> None:
+    """LinoLocError naming ``path`` unless ``sessions`` (if any) tile the n entries in order."""
+    if not sessions:
+        return
+    at = 0
+    for k, sess in enumerate(sessions):
+        if sess.first_entry != at:
+            raise LinoLocError(f"{path}: corrupt map file: session {k} ({sess.name!r}) starts at entry "
+                               f"{sess.first_entry}, expected {at}")
+        at += sess.n_entries
+    if at != n:
+        raise LinoLocError(f"{path}: corrupt map file: the sessions hold {at} entries but the map has {n}")
+
+
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
@@ -365,9 +403,18 @@ class AppearanceMap:
     condition: str | None = None
     created: str = field(default_factory=_utc_now)
     path: Path | None = None
+    sessions: list[SessionInfo] = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
+
+    def session_list(self) -> list[SessionInfo]:
+        """The map's sessions: the header's, or for a map of one survey (``sessions`` empty,
+        every map before ``lino-loc map extend``) that survey as one ``built`` session."""
+        if self.sessions:
+            return list(self.sessions)
+        return [SessionInfo(name=self.condition or self.name or "survey", condition=self.condition,
+                            source=self.source, first_entry=0, n_entries=max(len(self), 1), added=self.created)]
 
     @property
     def preprocess(self) -> str:
@@ -411,6 +458,7 @@ class AppearanceMap:
             n_images=max(n, 1),
             camera=self.camera,
             channels=chans,
+            sessions=self.sessions,
             sha256=_checksum(arrays),
         )
         return arrays, header
@@ -424,7 +472,9 @@ class AppearanceMap:
         """Write the map file atomically (temporary file + rename). Returns the path."""
         path = Path(path)
         arrays, header = self._arrays_and_header()
-        hdr = np.frombuffer(header.model_dump_json().encode("utf-8"), dtype=np.uint8)
+        # a map of one survey is written without the ``sessions`` key, as before sessions existed
+        hdr_json = header.model_dump_json(exclude={"sessions"} if not header.sessions else None)
+        hdr = np.frombuffer(hdr_json.encode("utf-8"), dtype=np.uint8)
         parent = path.parent if str(path.parent) else Path(".")
         if not parent.is_dir():
             raise LinoLocError(f"{path}: folder {parent} does not exist")
@@ -537,6 +587,7 @@ class AppearanceMap:
                 params={k: v for k, v in ch.params.items()},
             )
         _check_content(path, header, arrays)
+        _check_sessions(path, header.sessions, n)
         return cls(
             poses=poses,
             channels=channels,
@@ -546,6 +597,7 @@ class AppearanceMap:
             condition=header.condition,
             created=header.created,
             path=path,
+            sessions=list(header.sessions),
         )
 
     def info(self) -> dict[str, Any]:
@@ -582,6 +634,7 @@ class AppearanceMap:
                 "y": [float(p[:, 1].min()), float(p[:, 1].max())],
             },
             "channels": chans,
+            "sessions": [sess.model_dump() for sess in self.session_list()],
             "sha256": header.sha256,
         }
 

@@ -16,6 +16,8 @@
     [persistence]      services.persistence.PersistenceConfig: state file (last pose), save period
     [recording]        services.recording.recorder.RecordingConfig: the session's MCAP file
     [live_view]        services.recording.live_view.LiveViewConfig: a Foxglove WebSocket server
+    [map_refresh]      services.map_refresh.MapRefreshConfig: confident views written into a
+                       dataset for `lino-loc map extend` (off by default)
     [logging]          level
 
 Sources, highest priority first: environment variables ``LINO_LOC__SECTION__FIELD``
@@ -58,6 +60,7 @@ from lino_loc.particle_filter import FilterConfig, old_key_problems
 from lino_loc.preprocessing import Preprocess
 from services.active_head import METHOD_SETTINGS, ActiveVisionSettings
 from services.curve_auth import CurveConfig, curve_problem
+from services.map_refresh import MapRefreshConfig
 from services.persistence import PersistenceConfig
 from services.publisher import PublishConfig
 from services.recording.live_view import LiveViewConfig
@@ -279,6 +282,7 @@ class ServiceConfig(BaseSettings):
     persistence: PersistenceConfig = Field(default_factory=PersistenceConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
     live_view: LiveViewConfig = Field(default_factory=LiveViewConfig)
+    map_refresh: MapRefreshConfig = Field(default_factory=MapRefreshConfig)
     logging: LoggingConfig = Field(default_factory=LoggingConfig)
 
     @classmethod

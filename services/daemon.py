@@ -96,6 +96,7 @@ from services.device_threads import (
     OdometryFactory,
     OdometryWorker,
 )
+from services.map_refresh import MapRefreshWriter
 from services.messages import PersistenceInfo, PosePortInfo
 from services.persistence import (
     RestoreContext,
@@ -295,6 +296,7 @@ class Daemon:
                                   self.recorder.info, self.live.info),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
+        self.refresh = MapRefreshWriter.for_map(cfg.map_refresh, amap)
 
     # ------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -315,6 +317,7 @@ class Daemon:
         self._remove_leftovers()
         self.recorder.start()
         self.live.start()  # a port in use is logged and in the status: the daemon goes on
+        self.refresh.start()
         self.workers["odometry"].start()  # its counters may decide the initial belief
         self._initial_belief()
         for name, w in self.workers.items():
@@ -425,6 +428,9 @@ class Daemon:
             self.truth.stop()
         self.recorder.close()
         self.live.close()
+        self.refresh.close()
+        if self.refresh.enabled:
+            log.info("map refresh: %s", self.refresh.info())
         if self.publisher is not None:
             self.publisher.close()
         if self._own_ctx:
@@ -498,6 +504,8 @@ class Daemon:
             log.info("camera frames again: localizing with images")
         self.watch.dead_reckoning = False
         self._publish_pose(est, stamp, pan)
+        if image is not None:  # never raises, never waits (services.map_refresh)
+            self.refresh.offer(stamp, frame.left, frame.disparity, est.pose, pan, est.quality, est.state)
         self.live.frame(stamp, frame.left)
         self.status.frame_taken()
         self.active.step(est, stamp, delta)

@@ -181,3 +181,19 @@ def test_converged_after_needs_the_error_to_stay_low() -> None:
     assert tracking.converged_after(t, err, 0.5, 3.0) == 5.0  # 2-3 is too short, 5-9 holds
     assert tracking.converged_after(t, err, 0.5, 100.0) == 5.0  # held to the end of the run
     assert tracking.converged_after(t, np.full(10, 1.0), 0.5, 1.0) is None
+
+
+def test_tracking_cli_with_a_map_file(office_map, tmp_path, capsys) -> None:
+    """`eval tracking --map FILE` localizes against that map file (its features, camera and
+    working size) and reports its sessions."""
+
+    path = office_map.save(tmp_path / "tube.npz")
+    code = cli_main(["eval", "tracking", "--world", "office", "--map", str(path), "--duration", "2", "--rate", "2",
+                     "--particles", "100", "--lights", "bulb", "--switch-lights", "none", "--no-global",
+                     "--no-kidnap", "--no-recovery-comparison", "--workers", "1", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["map_entries"] == len(office_map) and res["features"] == 4
+    assert [s["basis"] for s in res["map"]["sessions"]] == ["built"]
+    assert res["conditions"]["bulb"]["mean_error_m"] >= 0.0

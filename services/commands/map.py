@@ -34,6 +34,7 @@ from lino_loc.dataset import Dataset, require_valid
 from lino_loc.pca import PCA_METHODS
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from lino_loc.virtual_views import offsets
+from services.commands import map_check_cmd, map_extend_cmd
 from services.progress import Progress
 
 log = logging.getLogger("lino_loc.map")
@@ -164,6 +165,12 @@ def _info(args: argparse.Namespace) -> int:
             f"channel    {name}: {ch['n_features']} features, preprocess {ch['preprocess']}, "
             f"{ch['size'][0]}x{ch['size'][1]}, {ch['method']}{frac}{_em_summary(ch['params'])}"
         )
+    sessions = info.get("sessions", [])
+    if len(sessions) > 1:
+        for sess in sessions:
+            lines.append(f"session    {sess['name']}: entries {sess['first_entry']}..{sess['first_entry'] + sess['n_entries'] - 1}"
+                         f" ({sess['n_entries']}), condition {sess['condition'] or '-'}, {sess['basis']}"
+                         + (f", added {sess['added']}" if sess.get("added") else ""))
     lines.append(f"sha256     {info['sha256']}")
     print("\n".join(lines))
     return 0
@@ -206,3 +213,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("map", help="map file")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=_info)
+
+    map_check_cmd.register(msub)
+    map_extend_cmd.register(msub)

@@ -126,9 +126,23 @@ def _tracking(args: argparse.Namespace) -> int:
                           switch_lights=_switch_lights(args.switch_lights, lights),
                           seed=args.seed, workers=args.workers, channels=parse_channels(args.channels),
                           stereo=STEREO_PRESETS[args.stereo])
+    maps = None
+    if args.map is not None:  # a map file instead of the rendered survey: its preprocessing and channels
+        from dataclasses import replace
+
+        from lino_loc.appearance_map import AppearanceMap
+
+        amap = AppearanceMap.load(args.map)
+        setup = replace(setup, preprocess=(amap.preprocess,), channels=tuple(amap.channels),
+                        features=amap.channels["intensity"].n_features, width=amap.camera.width,
+                        height=amap.camera.height, size=amap.size)
+        maps = {amap.preprocess: amap}
     bar, cb = _progress()
-    res = run(setup, _localizer_config(args), trajectories=args.trajectories, progress=cb)  # type: ignore[arg-type]
+    res = run(setup, _localizer_config(args), maps=maps, trajectories=args.trajectories,  # type: ignore[arg-type]
+              progress=cb)
     bar.close()
+    if args.map is not None:
+        res["map"] = {"file": args.map, "sessions": [s.model_dump() for s in maps[setup.preprocess[0]].session_list()]}
     if args.json:
         print(json.dumps(res))
         return 0
@@ -230,6 +244,10 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="skip the runs with kidnap recovery switched off")
     p.add_argument("--no-kidnap", action="store_true",
                    help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
+    p.add_argument("--map", default=None, metavar="FILE",
+                   help="localize against this map file (e.g. one extended by `lino-loc map extend`) instead "
+                        "of the rendered tube survey; its preprocessing, features, channels, camera size and "
+                        "working size are used (the frames are rendered at its camera's size)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
     add_channels_option(p, ",".join(DEFAULT_CHANNELS))
