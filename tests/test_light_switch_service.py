@@ -6,7 +6,10 @@ tests/test_daemon_integration.py (same configuration and cached map). After the 
 the scene for a while under the mapping light, SIGUSR2 makes the simulator switch the lights
 to ``bulb`` (it re-bakes the lighting; the camera keeps streaming). Asserted: the daemon's
 filter finds the change of the scene's appearance (``appearance_changes`` in ``status``, and
-the INFO line in its log) within 30 s, and keeps publishing poses.
+the INFO line in its log) within ``FIND_WITHIN_S`` seconds, and keeps publishing poses. The
+delay depends on where the robot drives when the lights switch: in some places of this small
+map bulb light makes the views hardly less familiar, and the detector's evidence waits
+(docs/results.md, "The appearance-change watch's start": 8.0-39.6 s, one run over 30 s).
 
 How well it localizes afterwards is not asserted here: under bulb light this small map (5
 features of 80 x 60 plain images) tracks poorly whatever the filter does (one run each, 40 s
@@ -37,6 +40,9 @@ from test_daemon_integration import (  # noqa: E402
     stop,
 )
 
+#: How long the daemon may take to report the change (s); the measured delays reach 40 s.
+FIND_WITHIN_S = 60.0
+
 
 def _status(rep: str) -> dict:
     reply = request(rep, {"cmd": "status"})
@@ -66,13 +72,13 @@ def test_daemon_reports_the_lights_switched_and_keeps_publishing(tmp_path: Path)
         before = _status(rep)["appearance_changes"]
         sim.send_signal(signal.SIGUSR2)
         t_switch = time.time()
-        deadline = t_switch + 30.0
+        deadline = t_switch + FIND_WITHIN_S
         changes = before
         while time.time() < deadline and changes <= before:
             time.sleep(0.5)
             changes = _status(rep)["appearance_changes"]
         assert changes >= before + 1, (
-            "no appearance change reported 30 s after the lights were switched; daemon log:\n"
+            f"no appearance change reported {FIND_WITHIN_S:.0f} s after the lights were switched; daemon log:\n"
             + log.read_text()[-2000:])
         assert "lighting switched to bulb" in (tmp_path / "sim.log").read_text()
         assert "relearns what they look like" in log.read_text()
