@@ -9,7 +9,8 @@ filter finds the change of the scene's appearance (``appearance_changes`` in ``s
 the INFO line in its log) within ``FIND_WITHIN_S`` seconds, and keeps publishing poses. The
 delay depends on where the robot drives when the lights switch: in some places of this small
 map bulb light makes the views hardly less familiar, and the detector's evidence waits
-(docs/results.md, "The appearance-change watch's start": 8.0-39.6 s, one run over 30 s).
+(docs/results.md, "The appearance-change watch's start": 8-48 s, about one session in five
+over 30 s).
 
 How well it localizes afterwards is not asserted here: under bulb light this small map (5
 features of 80 x 60 plain images) tracks poorly whatever the filter does (one run each, 40 s
@@ -40,8 +41,8 @@ from test_daemon_integration import (  # noqa: E402
     stop,
 )
 
-#: How long the daemon may take to report the change (s); the measured delays reach 40 s.
-FIND_WITHIN_S = 60.0
+#: How long the daemon may take to report the change (s): about twice the longest measured delay.
+FIND_WITHIN_S = 90.0
 
 
 def _status(rep: str) -> dict:
@@ -50,6 +51,7 @@ def _status(rep: str) -> dict:
     return reply["status"]
 
 
+@pytest.mark.timeout(300)  # the start, up to FIND_WITHIN_S for the report, the last poses
 def test_daemon_reports_the_lights_switched_and_keeps_publishing(tmp_path: Path) -> None:
     from services.config import load_config
     from services.sim_launcher import ensure_sim_map
