@@ -1,10 +1,10 @@
 """Send the simulated base to a pose: a path through free space and a controller that follows it.
 
 :func:`plan_path` finds a path for the robot disc from a start position to a goal position
-through a :class:`drivers.sim.free_space.FreeSpace` raster: A* over the raster's cells
-(every ``stride``-th cell, 8-connected, Euclidean costs and heuristic), then shortened by
-dropping every waypoint the straight segment between its neighbours makes unnecessary
-(:meth:`FreeSpace.segment_free`). LinoLocError when the goal is not free for the disc or no
+through a :class:`drivers.sim.free_space.FreeSpace` raster: A* over the cells of a wider
+raster (the base's radius plus ``PATH_CLEARANCE_M``; every ``stride``-th cell, 8-connected,
+Euclidean costs and heuristic), then shortened by dropping every waypoint the straight
+segment between its neighbours makes unnecessary (:meth:`FreeSpace.segment_free`). LinoLocError when the goal is not free for the disc or no
 path reaches it.
 
 :class:`GotoPlan` follows such a path with the interface the simulated base steps
@@ -43,7 +43,11 @@ POSITION_TOLERANCE_M = 0.01
 #: The goal heading is reached within this angle (rad, 0.3 deg).
 HEADING_TOLERANCE_RAD = math.radians(0.3)
 #: Beyond this heading error (rad) the base turns on the spot before driving on.
-TURN_IN_PLACE_RAD = math.radians(10.0)
+TURN_IN_PLACE_RAD = math.radians(5.0)
+#: Clearance (m) beyond the base's radius that a path keeps between its ends (``wide``).
+PATH_CLEARANCE_M = 0.06
+#: Length (m) at each end of a path that needs only the base's own free space.
+END_SLACK_M = 0.15
 #: Gains of the controller: turn rate per rad of heading error (1/s), speed per metre to go (1/s).
 K_TURN = 2.0
 K_SPEED = 1.5
@@ -52,10 +56,17 @@ WAYPOINT_RADIUS_M = 0.05
 
 
 def plan_path(
-    free: FreeSpace, start: tuple[float, float], goal: tuple[float, float], stride: int = 2
+    free: FreeSpace,
+    start: tuple[float, float],
+    goal: tuple[float, float],
+    stride: int = 2,
+    wide: FreeSpace | None = None,
 ) -> list[tuple[float, float]]:
     """Waypoints from ``start`` to ``goal`` (both included) for the disc of ``free`` (see the
-    module docstring). ``stride``: raster cells per search cell."""
+    module docstring). ``stride``: raster cells per search cell. ``wide``: the free space of a
+    larger disc (the base's plus a clearance) that the path keeps to between its first and
+    its last segment, so that a base following it with small errors is never blocked (the
+    ends, which may be close to furniture, need only ``free``)."""
     if not free.free_point(*goal):
         raise LinoLocError(
             f"goto: ({goal[0]:.3f}, {goal[1]:.3f}) is not free space for the robot "
@@ -63,8 +74,9 @@ def plan_path(
         )
     if free.segment_free(start, goal):
         return [start, goal]
-    grid = free.grid[::stride, ::stride]
-    cell = free.cell * stride
+    space = wide if wide is not None else free
+    grid = space.grid[::stride, ::stride]
+    cell = space.cell * stride
     nx, ny = grid.shape
 
     def index(p: tuple[float, float]) -> tuple[int, int]:
@@ -107,12 +119,28 @@ def plan_path(
     while cells[-1] != s:
         cells.append(parent[cells[-1]])
     cells.reverse()
-    raw = [start] + [(free.x0 + i * cell, free.y0 + j * cell) for i, j in cells[1:-1]] + [goal]
+    mid = [(space.x0 + i * cell, space.y0 + j * cell) for i, j in cells]
+    raw = [start, *mid, goal]
+    last = len(raw) - 1
+
+    def clear(k: int, j: int) -> bool:
+        """The segment raw[k]-raw[j] is free for the base, and for the wider disc but within
+        ``END_SLACK_M`` of an end of the path (which may be near furniture)."""
+        a, b = raw[k], raw[j]
+        if not free.segment_free(a, b):
+            return False
+        length = math.dist(a, b)
+        ta = min(END_SLACK_M, 0.5 * length) / length if k == 0 and length > 0 else 0.0
+        tb = min(END_SLACK_M, 0.5 * length) / length if j == last and length > 0 else 0.0
+        a2 = (a[0] + ta * (b[0] - a[0]), a[1] + ta * (b[1] - a[1]))
+        b2 = (b[0] + tb * (a[0] - b[0]), b[1] + tb * (a[1] - b[1]))
+        return space.segment_free(a2, b2) if ta + tb < 1.0 else True
+
     path = [raw[0]]
     k = 0
-    while k < len(raw) - 1:  # the farthest waypoint reachable in a straight line
-        j = len(raw) - 1
-        while j > k + 1 and not free.segment_free(raw[k], raw[j]):
+    while k < last:  # the farthest waypoint reachable in a straight line
+        j = last
+        while j > k + 1 and not clear(k, j):
             j -= 1
         path.append(raw[j])
         k = j

@@ -66,7 +66,7 @@ from drivers.sim.drive import DrivePlanner, PlannerConfig
 from drivers.sim.dynamixel_emulator import DynamixelBusEmulator
 from drivers.sim.frame_transport import FRAME_TOPIC, encode_frame
 from drivers.sim.free_space import FreeSpace
-from drivers.sim.goto import GotoPlan, plan_path
+from drivers.sim.goto import PATH_CLEARANCE_M, GotoPlan, plan_path
 from drivers.sim.odometry_emulator import OdometryBoardEmulator
 from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.wheel_noise import WheelOdometryNoise
@@ -255,6 +255,7 @@ class SimRobot:
             else None
         )
         self.renderer: Renderer | None = None
+        self._wide_free: FreeSpace | None = None
         self.head = DynamixelBusEmulator((c.pan_id, c.tilt_id), link=c.head_link)
         self.odometry = OdometryBoardEmulator(
             link=c.odometry_link,
@@ -535,7 +536,9 @@ class SimRobot:
         cannot be reached. Thread-safe."""
         truth = self._truth
         here = truth.pose if truth is not None else self._start_pose
-        path = plan_path(self.free, (here[0], here[1]), (float(x), float(y)))
+        if self._wide_free is None:  # the path keeps a clearance beyond the base's disc
+            self._wide_free = FreeSpace(self.world, self.free.radius + PATH_CLEARANCE_M, self.scene_changes)
+        path = plan_path(self.free, (here[0], here[1]), (float(x), float(y)), wide=self._wide_free)
         v = self.config.speed if speed is None else float(speed)
         plan = GotoPlan(path, float(theta), speed=v if v > 0 else 0.3, turn_rate=self.config.turn_rate)
         self.plan = plan  # the base thread reads it at its next tick
