@@ -5,7 +5,8 @@ threads (:mod:`services.device_threads`: the camera worker's newest frame, the h
 history of present angles, the odometry buffer) and writes a dataset folder
 (docs/datasets.md) through :class:`lino_loc.dataset.DatasetWriter` with its journal.
 
-At each stop, for each base turn of :func:`services.survey_plan.head_sweep`, the mover
+At each stop (every other one in the reverse order of the sweep, so that the head and the
+base go on from where they are), for each base turn of :func:`services.survey_plan.head_sweep`, the mover
 (:mod:`services.survey_moves`) brings the robot to (x, y, theta + turn); then for each pan of
 that turn the head is commanded there and the first frame is kept that
 
@@ -86,6 +87,13 @@ class SurveyReport:
     seconds: float = 0.0
     interrupted: bool = False
     odometry_distance_m: float | None = None
+    #: where this run's time went (s): the mover (driving, the operator), the head (from a pan
+    #: command until the head stopped moving plus the settle time), waiting for the next frame
+    #: after that, and writing the rows
+    drive_s: float = 0.0
+    head_s: float = 0.0
+    frame_wait_s: float = 0.0
+    write_s: float = 0.0
 
     @property
     def images_per_minute(self) -> float:
@@ -93,7 +101,8 @@ class SurveyReport:
 
     def as_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
-        out["seconds"] = round(self.seconds, 3)
+        for k in ("seconds", "drive_s", "head_s", "frame_wait_s", "write_s"):
+            out[k] = round(out[k], 3)
         out["images_per_minute"] = round(self.images_per_minute, 2)
         return out
 
@@ -272,7 +281,9 @@ class RobotSurvey:
     def _run_stops(self, writer: DatasetWriter, done: set[tuple[Any, Any, Any]]) -> None:
         n = len(self.stops)
         for si, stop in enumerate(self.stops):
-            todo = [c for c in self.sweep if (si, c.turn_index, c.pan_index) not in done]
+            # every other stop sweeps backwards: the head and the base go on from where they are
+            order = self.sweep if si % 2 == 0 else self.sweep[::-1]
+            todo = [c for c in order if (si, c.turn_index, c.pan_index) not in done]
             if todo:
                 self._stop(si, stop, todo, writer)
             else:
@@ -292,7 +303,9 @@ class RobotSurvey:
                 label_t = f"{label} (base turned {math.degrees(caps[0].turn):+.0f} deg)"
             else:
                 label_t = label
+            t_move = time.monotonic()
             answer = self.mover.reach(si, target, label_t)
+            self.report.drive_s += time.monotonic() - t_move
             if answer == "quit":
                 self._quit = True
                 return
@@ -334,9 +347,15 @@ class RobotSurvey:
                 self.report.discarded_no_pose += 1
                 continue
             cam = camera_pose(robot, pan)
+            lm = dev.heads.last_motion
+            settled = max(t_cmd, lm + s.settle_s if lm is not None else t_cmd)
+            self.report.head_s += settled - t_cmd
+            self.report.frame_wait_s += max(0.0, frame.stamp - settled)
+            t_write = time.monotonic()
             writer.add(frame.left, cam, condition=s.condition, disparity=frame.disparity, right=frame.right,
                        stamp=frame.stamp, extra={"stop": si, "turn_index": c.turn_index, "pan_index": c.pan_index,
                                                  "robot": [float(v) for v in robot], "pan": float(pan)})
+            self.report.write_s += time.monotonic() - t_write
             self.report.images_this_run += 1
             return True
         self.report.pans_missed += 1

@@ -15,11 +15,12 @@ over the full turn, relative to the stop's heading, each taken as a base turn ``
 pan ``p`` inside the head's range [pan_min, pan_max]. With the range covering the turn
 (pan_max - pan_min >= 2 pi - heading_step) the base never turns; otherwise headings are
 covered greedily: base turn 0 first, then, while a heading is left, a base turn that puts
-the first heading left (in increasing angle from the last covered one) at pan_min, covering
+the first heading left clockwise from the lower end of the last range at pan_max, covering
 every heading left that then falls inside the range. Within a base turn the pans are
-ordered to sweep one way; consecutive base turns alternate the direction (the head never
-swings back across its range between two captures). ``Capture.key`` names a capture in a
-dataset's journal (stop, base turn, pan index).
+ordered to sweep one way, the first turn's up and the next one's down, so that the head
+goes on from where it is instead of swinging back across its range (a survey sweeps every
+other stop in the reverse order, :mod:`services.robot_survey`). A capture is named in a
+dataset's journal by (stop, ``turn_index``, ``pan_index``).
 
 Usage::
 
@@ -178,10 +179,11 @@ def head_sweep(pan_min: float, pan_max: float, heading_step: float) -> list[Capt
         left = [k for k in left if k not in done]
         if not left:
             break
-        # the first heading left counter-clockwise from the range's upper end
-        upper = turn + pan_max
-        k0 = min(left, key=lambda k: (headings[k] - upper) % (2 * math.pi))
-        turn = float(wrap_angle(headings[k0] - pan_min))
+        # the first heading left clockwise from the lower end of the first turn's range, put
+        # at pan_max: the head, which ended the first sweep near pan_max, barely moves
+        lower = turns[0][0] + pan_min if len(turns) == 1 else turn + pan_min
+        k0 = min(left, key=lambda k: (lower - headings[k]) % (2 * math.pi))
+        turn = float(wrap_angle(headings[k0] - pan_max))
     out: list[Capture] = []
     for ti, (t, pans) in enumerate(turns):
         ordered = pans if ti % 2 == 0 else list(reversed(pans))

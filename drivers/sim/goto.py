@@ -49,8 +49,8 @@ PATH_CLEARANCE_M = 0.06
 #: Length (m) at each end of a path that needs only the base's own free space.
 END_SLACK_M = 0.15
 #: Gains of the controller: turn rate per rad of heading error (1/s), speed per metre to go (1/s).
-K_TURN = 2.0
-K_SPEED = 1.5
+K_TURN = 4.0
+K_SPEED = 3.0
 #: Intermediate waypoints count as passed within this distance (m).
 WAYPOINT_RADIUS_M = 0.05
 

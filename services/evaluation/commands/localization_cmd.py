@@ -14,6 +14,7 @@ docs/evaluations.md).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 from lino_loc.disparity import STEREO_PRESETS
@@ -67,6 +68,28 @@ def add_channels_option(p: argparse.ArgumentParser, default: str = "intensity") 
                    "predictive likelihood); default: the configuration's")
 
 
+def given_map(path: str | None, channels: tuple[str, ...]):  # -> AppearanceMap | None
+    """``--map FILE``: the map to evaluate instead of the rendered survey's (None without it).
+    LinoLocError (one line) when it cannot be loaded or lacks a channel of ``--channels``."""
+    if not path:
+        return None
+    from lino_loc.appearance_map import AppearanceMap
+
+    amap = AppearanceMap.load(path)
+    missing = [c for c in channels if c not in amap.channels]
+    if missing:
+        raise LinoLocError(f"--map {path}: has no {', '.join(missing)} channel (it has "
+                           f"{', '.join(amap.channels)}); match --channels to it")
+    return amap
+
+
+def add_map_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--map", default=None, metavar="FILE",
+                   help="evaluate this map file (e.g. `lino-loc map build` of a `survey --robot` dataset) "
+                   "instead of the rendered survey's; the test views are the same; its working size and "
+                   "preprocessing are the map's")
+
+
 # --------------------------------------------------------------------------- global
 
 
@@ -79,8 +102,13 @@ def _global(args: argparse.Namespace) -> int:
                         starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
                         j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
                         channels=parse_channels(args.channels), sensor_model=args.sensor_model)
+    amap = given_map(args.map, setup.channels)
+    if amap is not None:
+        setup = dataclasses.replace(setup, size=amap.size, preprocess=amap.preprocess)
     bar, cb = _progress()
-    res = run(setup, _localizer_config(args), progress=cb)  # type: ignore[arg-type]
+    res = run(setup, _localizer_config(args), appearance_map=amap, progress=cb)  # type: ignore[arg-type]
+    if amap is not None:
+        res["map"] = str(args.map)
     bar.close()
     if args.json:
         print(json.dumps(res))
@@ -126,8 +154,16 @@ def _tracking(args: argparse.Namespace) -> int:
                           switch_lights=_switch_lights(args.switch_lights, lights),
                           seed=args.seed, workers=args.workers, channels=parse_channels(args.channels),
                           stereo=STEREO_PRESETS[args.stereo])
+    amap = given_map(args.map, setup.channels)
+    maps = None
+    if amap is not None:
+        setup = dataclasses.replace(setup, size=amap.size, preprocess=(amap.preprocess,))
+        maps = {amap.preprocess: amap}
     bar, cb = _progress()
-    res = run(setup, _localizer_config(args), trajectories=args.trajectories, progress=cb)  # type: ignore[arg-type]
+    res = run(setup, _localizer_config(args), maps=maps, trajectories=args.trajectories,  # type: ignore[arg-type]
+              progress=cb)
+    if amap is not None:
+        res["map"] = str(args.map)
     bar.close()
     if args.json:
         print(json.dumps(res))
@@ -206,6 +242,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_map_option(p)
     p.set_defaults(func=_global)
 
     from services.evaluation.tracking import DEFAULT_CHANGES, DEFAULT_CHANNELS, DEFAULT_PREPROCESS
@@ -237,6 +274,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_map_option(p)
     p.set_defaults(func=_tracking)
 
     p = eval_sub.add_parser("leave-out", help="sensor-model error (eq. 10) on held-out frames of a dataset")
