@@ -240,6 +240,8 @@ class RobotSurvey:
         self.overwrite = overwrite
         self.settle = HeadSettle(settings.settle_s)
         self.report = SurveyReport(dataset=str(self.out), stops=len(stops))
+        #: stops whose every capture was in the folder when this run started (a resumed survey)
+        self.stops_resumed = 0
         self._quit = False
 
     # ------------------------------------------------------------------------------------
@@ -280,6 +282,8 @@ class RobotSurvey:
 
     def _run_stops(self, writer: DatasetWriter, done: set[tuple[Any, Any, Any]]) -> None:
         n = len(self.stops)
+        self.stops_resumed = sum(all((si, c.turn_index, c.pan_index) in done for c in self.sweep)
+                                 for si in range(n))
         for si, stop in enumerate(self.stops):
             # every other stop sweeps backwards: the head and the base go on from where they are
             order = self.sweep if si % 2 == 0 else self.sweep[::-1]

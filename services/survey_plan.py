@@ -7,8 +7,8 @@ heading the robot is asked to face at the stop (0 when the plan does not say).
   (optionally ``theta``, radians); blank lines and lines starting with ``#`` are skipped.
   LinoLocError naming the file, the line and the field for anything else.
 - :func:`grid_plan`: every ``step`` metres over the rectangle ``area`` = (x0, y0, x1, y1),
-  rows of increasing y, each row of increasing x (the order the robot drives them: a
-  boustrophedon would shorten the drive, but keeps the rows' order the renderer's).
+  rows of increasing y, driven as a boustrophedon: the first row with increasing x, the
+  next with decreasing x, and so on (the robot never drives back along a whole row).
 
 :func:`head_sweep` lists the captures of one stop: camera headings every ``heading_step``
 over the full turn, relative to the stop's heading, each taken as a base turn ``b`` plus a
@@ -149,7 +149,8 @@ def grid_plan(step: float, area: tuple[float, float, float, float]) -> list[Stop
     ny = int(math.floor((y1 - y0) / step + 1e-9)) + 1
     if nx * ny > MAX_STOPS:
         raise LinoLocError(f"--grid {step}: {nx * ny} stops over the area, more than {MAX_STOPS}")
-    return [Stop(round(x0 + i * step, 9), round(y0 + j * step, 9)) for j in range(ny) for i in range(nx)]
+    return [Stop(round(x0 + i * step, 9), round(y0 + j * step, 9))
+            for j in range(ny) for i in (range(nx) if j % 2 == 0 else range(nx - 1, -1, -1))]
 
 
 def head_sweep(pan_min: float, pan_max: float, heading_step: float) -> list[Capture]:

@@ -49,9 +49,9 @@ def test_plan_file_errors(tmp_path):
         read_plan_csv(bad)
 
 
-def test_grid_plan_covers_the_area_row_by_row():
+def test_grid_plan_covers_the_area_row_by_row_as_a_boustrophedon():
     stops = grid_plan(0.5, (1.0, 0.0, 2.0, 0.5))
-    assert [(s.x, s.y) for s in stops] == [(1.0, 0.0), (1.5, 0.0), (2.0, 0.0), (1.0, 0.5), (1.5, 0.5), (2.0, 0.5)]
+    assert [(s.x, s.y) for s in stops] == [(1.0, 0.0), (1.5, 0.0), (2.0, 0.0), (2.0, 0.5), (1.5, 0.5), (1.0, 0.5)]
     with pytest.raises(LinoLocError, match="positive"):
         grid_plan(0.0, (0, 0, 1, 1))
     with pytest.raises(LinoLocError, match="more than"):

@@ -168,7 +168,8 @@ def run_robot_survey(args: argparse.Namespace) -> int:
             source=(f"lino-loc survey --robot ({reason}); poses {args.poses}; drive {drive}; "
                     f"heading step {args.heading_step:g} deg; {len(stops)} stops"),
             disparity_source="stereo-matcher" if cfg.devices.camera.kind == "sim" else "device",
-            progress=lambda done, total: bar.update(done, total, label=f"survey --robot: {total - done} stops left"),
+            progress=lambda done, total: bar.update(done, total, label=f"survey --robot: {total - done} stops left",
+                                                    base=survey.stops_resumed),
             overwrite=args.overwrite,
         )
         if stop_signals:
