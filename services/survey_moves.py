@@ -14,7 +14,7 @@ the survey is to end now (what was captured is kept; a new run continues).
 - :class:`ControlMover`: the operator (or a program) confirms by a request on a ZeroMQ REP
   socket, one JSON object per request and per reply::
 
-      {"cmd": "status"}    -> {"ok": true, "waiting": true, "stop": 3, "pose": [x, y, theta], ...}
+      {"cmd": "status"}    -> {"ok": true, "waiting": true, "stop": 3, "pose": [x, y, theta], "stops_done": 3, ...}
       {"cmd": "confirm"}   -> the robot is at the pose: capture (ok)
       {"cmd": "skip"}      -> leave this stop out
       {"cmd": "quit"}      -> end the survey now

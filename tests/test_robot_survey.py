@@ -22,6 +22,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -104,6 +105,15 @@ def _journal_rows(out: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, dead but not yet reaped, does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -137,10 +147,19 @@ def resumed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]
     log.close()
     before = _journal_rows(out)
     hashes = {r["row"]["image"]: _sha(out / r["row"]["image"]) for r in before}
-    time.sleep(1.0)  # the killed survey's simulator (SIGTERM on its parent's death) is gone
+    # the killed survey's simulator gets SIGTERM on its parent's death, and stops
+    found = re.search(r"simulated robot running \(pid ([0-9]+)\)", (tmp / "first.log").read_text())
+    assert found, "the survey did not say which simulator it started"
+    sim_pid = int(found.group(1))
+    deadline = time.monotonic() + 15
+    while _alive(sim_pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    sim_stopped = not _alive(sim_pid)
+    if not sim_stopped:
+        os.kill(sim_pid, signal.SIGKILL)
     second = subprocess.run(argv, capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=240)
     yield {"tmp": tmp, "out": out, "before": before, "hashes": hashes, "summary": _summary(second),
-           "stderr": second.stderr}
+           "stderr": second.stderr, "sim_stopped": sim_stopped}
 
 
 def test_kill9_loses_no_image_and_the_rerun_completes_the_plan(resumed):
@@ -154,6 +173,7 @@ def test_kill9_loses_no_image_and_the_rerun_completes_the_plan(resumed):
     keys = [(r["extra"]["stop"], r["extra"]["turn_index"], r["extra"]["pan_index"]) for r in rows]
     assert len(set(keys)) == len(keys) == s["images"]
     assert "continuing" in resumed["stderr"]
+    assert resumed["sim_stopped"], "the killed survey's simulator kept running"
 
 
 def test_dataset_is_accepted_and_shows_the_building_at_its_poses(resumed):
@@ -286,6 +306,7 @@ def test_operator_mode_confirms_each_stop_through_its_control(sim):
                 time.sleep(0.1)
             assert _request(control, {"cmd": "confirm"})["ok"]
             confirmed.append(st["pose"])
+            assert st["stops"] == 1 and st["stops_done"] == 0
         stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -364,3 +385,22 @@ def test_bad_input_is_one_line_and_status_2(tmp_path):
         assert p.returncode == 2, p.stderr
         lines = p.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0] and "Traceback" not in p.stderr
+
+
+def test_odometry_mode_dead_reckons_from_the_start_and_warns(sim):
+    tmp = sim["tmp"]
+    out = tmp / "odometry"
+    here = _request(sim["faults"], {"cmd": "where"})["pose"]  # where the earlier tests left the robot
+    plan = _plan(tmp / "odo.csv", [(3.25, 1.25)])
+    proc = subprocess.run(
+        _survey_argv(sim["survey_config"], plan, out, "--drive", "sim", "--sim-control", sim["faults"],
+                     "--poses", "odometry", "--start", ",".join(f"{v:.6f}" for v in here)),
+        capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=180)
+    s = _summary(proc)
+    assert "they drift" in proc.stderr
+    assert s["images"] == CAPTURES_PER_STOP and s["odometry_distance_m"] > 0.5
+    truth = _request(sim["faults"], {"cmd": "where"})["pose"]
+    for r in _journal_rows(out):
+        rx, ry, _ = r["extra"]["robot"]
+        assert math.hypot(rx - 3.25, ry - 1.25) < 0.05  # dead reckoning over about a metre
+    assert math.hypot(truth[0] - 3.25, truth[1] - 1.25) < 0.02

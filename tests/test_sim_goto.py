@@ -118,3 +118,17 @@ def test_controller_answers_goto_and_where_and_refuses_an_unreachable_goal(offic
     assert respond(ctl, [b'{"cmd": "where"}'])["state"] == "driving"
     bad = respond(ctl, [b'{"cmd": "goto", "x": -5.0, "y": 1.0}'])
     assert bad["ok"] is False and "not free space" in bad["error"]
+
+
+def test_a_goal_on_the_edge_of_free_space_is_reached_from_inside_it():
+    """In the corridor the stops at y = 1.25 lie on the edge of the base's free space: a path
+    along that edge stops the base at the smallest heading error (seen in a survey)."""
+    world = load_world("corridor")
+    free, wide = FreeSpace(world, 0.26), FreeSpace(world, 0.26 + PATH_CLEARANCE_M)
+    a, b = (2.75, 1.25), (2.0, 1.25)
+    assert free.segment_free(a, b) and not free.free_point(2.74, 1.2507)  # the edge, just above
+    path = plan_path(free, a, b, wide=wide)
+    assert len(path) > 2  # not the straight segment along the edge
+    plan = GotoPlan(path, theta=0.0, speed=0.5)
+    end = _drive(free, plan, (a[0], a[1], 1.065))
+    assert plan.state == "arrived" and math.dist(end[:2], b) < POSITION_TOLERANCE_M

@@ -72,9 +72,9 @@ def plan_path(
             f"goto: ({goal[0]:.3f}, {goal[1]:.3f}) is not free space for the robot "
             f"(radius {free.radius:g} m) in world '{free.world.name}'"
         )
-    if free.segment_free(start, goal):
-        return [start, goal]
     space = wide if wide is not None else free
+    if _clear(free, space, start, goal, True, True):
+        return [start, goal]
     grid = space.grid[::stride, ::stride]
     cell = space.cell * stride
     nx, ny = grid.shape
@@ -124,17 +124,7 @@ def plan_path(
     last = len(raw) - 1
 
     def clear(k: int, j: int) -> bool:
-        """The segment raw[k]-raw[j] is free for the base, and for the wider disc but within
-        ``END_SLACK_M`` of an end of the path (which may be near furniture)."""
-        a, b = raw[k], raw[j]
-        if not free.segment_free(a, b):
-            return False
-        length = math.dist(a, b)
-        ta = min(END_SLACK_M, 0.5 * length) / length if k == 0 and length > 0 else 0.0
-        tb = min(END_SLACK_M, 0.5 * length) / length if j == last and length > 0 else 0.0
-        a2 = (a[0] + ta * (b[0] - a[0]), a[1] + ta * (b[1] - a[1]))
-        b2 = (b[0] + tb * (a[0] - b[0]), b[1] + tb * (a[1] - b[1]))
-        return space.segment_free(a2, b2) if ta + tb < 1.0 else True
+        return _clear(free, space, raw[k], raw[j], k == 0, j == last)
 
     path = [raw[0]]
     k = 0
@@ -145,6 +135,26 @@ def plan_path(
         path.append(raw[j])
         k = j
     return path
+
+
+def _clear(free: FreeSpace, space: FreeSpace, a: tuple[float, float], b: tuple[float, float],
+           a_end: bool, b_end: bool) -> bool:
+    """The segment a-b is free for the base, and for the wider disc of ``space`` but within
+    ``END_SLACK_M`` of an end of the path (``a_end``, ``b_end``), which may lie near furniture
+    or a wall: a base driving along the edge of its free space is stopped by the smallest
+    heading error."""
+    if not free.segment_free(a, b):
+        return False
+    length = math.dist(a, b)
+    if length == 0.0:
+        return True
+    ta = min(END_SLACK_M, 0.5 * length) / length if a_end else 0.0
+    tb = min(END_SLACK_M, 0.5 * length) / length if b_end else 0.0
+    if ta + tb >= 1.0:
+        return True
+    a2 = (a[0] + ta * (b[0] - a[0]), a[1] + ta * (b[1] - a[1]))
+    b2 = (b[0] + tb * (a[0] - b[0]), b[1] + tb * (a[1] - b[1]))
+    return space.segment_free(a2, b2)
 
 
 class GotoPlan:

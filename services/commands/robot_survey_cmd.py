@@ -172,6 +172,10 @@ def run_robot_survey(args: argparse.Namespace) -> int:
                                                     base=survey.stops_resumed),
             overwrite=args.overwrite,
         )
+        if isinstance(mover, ControlMover):  # status replies say how far the survey is
+            mover.progress = lambda: {"stops": survey.report.stops, "stops_done": survey.report.stops_done,
+                                      "stops_skipped": survey.report.stops_skipped,
+                                      "images": survey.report.resumed_images + survey.report.images_this_run}
         if stop_signals:
             raise KeyboardInterrupt
         report = survey.run()
