@@ -61,6 +61,8 @@ from lino_loc.errors import LinoLocError
 DATASET_VERSION = 1
 META_FILE = "dataset.json"
 POSES_FILE = "poses.csv"
+#: The crash-safe writer's journal (``DatasetWriter(..., journal=True)``): one JSON line per row.
+JOURNAL_FILE = "poses.journal.jsonl"
 REQUIRED_COLUMNS = ("image", "x", "y", "theta")
 OPTIONAL_COLUMNS = ("right", "disparity", "depth", "condition", "stamp")
 _FILE_COLUMNS = ("image", "right", "disparity", "depth")
@@ -211,11 +213,32 @@ class DatasetWriter:
     ``dataset.json`` is an unfinished survey, and :meth:`Dataset.open` refuses it). If the
     ``with`` block raises, nothing is finalised. Conditions used in :meth:`add` are appended
     to ``meta.conditions``.
+
+    ``journal=True`` makes the writer crash-safe and resumable: each :meth:`add` appends its
+    row (and the caller's ``extra`` JSON object) as one line to ``poses.journal.jsonl``,
+    flushed and fsynced after the row's files are written, so a process killed at any point
+    (``kill -9``) keeps every row added before. A writer opened with ``journal=True`` on a
+    folder that has a journal continues it: the rows already there are kept (a torn last
+    line, from a kill in the middle of writing it, is dropped), new rows take the next
+    indices, and :attr:`extras` holds each row's ``extra``; the journal's camera must be
+    ``meta``'s (LinoLocError naming the file otherwise). :meth:`close` writes ``poses.csv``
+    and ``dataset.json`` from all rows, and leaves the journal (a later writer may add more).
+    ``overwrite`` removes a journal too.
     """
 
-    def __init__(self, root: Path | str, meta: DatasetMeta, overwrite: bool = False) -> None:
+    def __init__(
+        self, root: Path | str, meta: DatasetMeta, overwrite: bool = False, *, journal: bool = False
+    ) -> None:
         self.root = Path(root)
         self.meta = meta.model_copy(deep=True)
+        self._rows: list[dict[str, str]] = []
+        self.extras: list[dict[str, Any]] = []
+        self._journal_fh: Any = None
+        jpath = self.root / JOURNAL_FILE
+        if journal and not overwrite and jpath.is_file():
+            self._resume(jpath)
+            self._closed = False
+            return
         if self.root.exists():
             if not self.root.is_dir():
                 raise LinoLocError(f"{self.root}: exists and is not a folder")
@@ -224,14 +247,68 @@ class DatasetWriter:
                     raise LinoLocError(
                         f"{self.root}: folder exists and is not empty (use overwrite to replace it)"
                     )
-                for name in (META_FILE, POSES_FILE):
+                for name in (META_FILE, POSES_FILE, JOURNAL_FILE):
                     (self.root / name).unlink(missing_ok=True)
                 for sub in _SUBDIRS.values():
                     if (self.root / sub).is_dir():
                         shutil.rmtree(self.root / sub)
         self.root.mkdir(parents=True, exist_ok=True)
-        self._rows: list[dict[str, str]] = []
         self._closed = False
+        if journal:
+            self._journal_fh = open(jpath, "a", encoding="utf-8")  # noqa: SIM115 - closed in close()
+            self._journal_line({"meta": self.meta.model_dump(mode="json")})
+
+    def _journal_line(self, obj: dict[str, Any]) -> None:
+        fh = self._journal_fh
+        fh.write(json.dumps(obj, separators=(",", ":")) + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+
+    def _resume(self, jpath: Path) -> None:
+        """Load the rows of the journal ``jpath`` and open it for appending (see the class)."""
+        raw = jpath.read_bytes()
+        *lines, tail = raw.split(b"\n")  # tail: what follows the last newline (a torn line)
+        saved_meta: DatasetMeta | None = None
+        for lineno, line in enumerate(lines, start=1):
+            try:
+                obj = json.loads(line)
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                raise LinoLocError(f"{jpath}: line {lineno}: not JSON (the journal is damaged)") from None
+            if not isinstance(obj, dict):
+                raise LinoLocError(f"{jpath}: line {lineno}: not a JSON object")
+            if "meta" in obj:
+                try:
+                    saved_meta = DatasetMeta.model_validate(obj["meta"])
+                except ValidationError as exc:
+                    raise LinoLocError(f"{jpath}: line {lineno}: {_one_line_validation(exc)}") from None
+                continue
+            row = obj.get("row")
+            if not isinstance(row, dict) or not all(isinstance(v, str) for v in row.values()):
+                raise LinoLocError(f"{jpath}: line {lineno}: 'row' must be an object of strings")
+            missing = [c for c in REQUIRED_COLUMNS if c not in row]
+            if missing:
+                raise LinoLocError(f"{jpath}: line {lineno}: row lacks {','.join(missing)}")
+            for col in _FILE_COLUMNS:
+                if row.get(col) and not (self.root / row[col]).is_file():
+                    raise LinoLocError(f"{jpath}: line {lineno}: file not found: {self.root / row[col]}")
+            self._rows.append(row)
+            extra = obj.get("extra")
+            self.extras.append(extra if isinstance(extra, dict) else {})
+            cond = row.get("condition") or ""
+            if cond and cond not in self.meta.conditions:
+                self.meta.conditions.append(cond)
+        if saved_meta is None:
+            raise LinoLocError(f"{jpath}: no meta line (not a dataset journal)")
+        if saved_meta.camera != self.meta.camera:
+            raise LinoLocError(
+                f"{jpath}: the journal's camera ({saved_meta.camera.width}x{saved_meta.camera.height}, "
+                f"fx {saved_meta.camera.fx:g}) is not this writer's ({self.meta.camera.width}x"
+                f"{self.meta.camera.height}, fx {self.meta.camera.fx:g})"
+            )
+        if tail:
+            with open(jpath, "r+b") as fh:
+                fh.truncate(len(raw) - len(tail))
+        self._journal_fh = open(jpath, "a", encoding="utf-8")  # noqa: SIM115 - closed in close()
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -241,6 +318,12 @@ class DatasetWriter:
             self.close()
         else:
             self._closed = True
+            self._close_journal()
+
+    def _close_journal(self) -> None:
+        if self._journal_fh is not None:
+            self._journal_fh.close()
+            self._journal_fh = None
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -278,9 +361,12 @@ class DatasetWriter:
         disparity: np.ndarray | None = None,
         right: np.ndarray | None = None,
         stamp: float | None = None,
+        extra: dict[str, Any] | None = None,
     ) -> int:
         """Add one row; returns its index. ``depth`` in metres, ``disparity`` in pixels
-        (float arrays, NaN or <= 0 = no value); ``right`` uint8 like ``image``."""
+        (float arrays, NaN or <= 0 = no value); ``right`` uint8 like ``image``. ``extra``: a
+        JSON-serializable object kept with the row in the journal (``journal=True``) and in
+        :attr:`extras`; not written to ``poses.csv``."""
         if self._closed:
             raise LinoLocError(f"{self.root}: writer is closed")
         p = np.asarray(pose, dtype=np.float64).reshape(-1)
@@ -310,7 +396,10 @@ class DatasetWriter:
         row["stamp"] = "" if stamp is None else repr(float(stamp))
         if condition is not None and condition not in self.meta.conditions:
             self.meta.conditions.append(condition)
+        if self._journal_fh is not None:
+            self._journal_line({"row": row, "extra": extra or {}})
         self._rows.append(row)
+        self.extras.append(dict(extra or {}))
         return index
 
     def close(self) -> None:
@@ -330,6 +419,7 @@ class DatasetWriter:
             w.writerow([r.get(c, "") for c in columns])
         _atomic_write_text(self.root / POSES_FILE, buf.getvalue())
         _atomic_write_text(self.root / META_FILE, self.meta.model_dump_json(indent=2) + "\n")
+        self._close_journal()
 
 
 class Dataset:

@@ -17,10 +17,11 @@ class Progress:
         self._last = 0.0
         self._drawn = False
 
-    def update(self, done: int, total: int, label: str | None = None) -> None:
+    def update(self, done: int, total: int, label: str | None = None, base: int = 0) -> None:
         """Redraw the line with done/total, the elapsed time and the remaining time extrapolated
         from the rate so far; skipped within 0.1 s of the last redraw unless done >= total.
-        No-op when disabled.
+        ``base``: items that were done before this run started (a resumed job), left out of
+        the rate. No-op when disabled.
         """
         if not self.enabled:
             return
@@ -30,7 +31,8 @@ class Progress:
         self._last = now
         elapsed = now - self.start
         frac = done / total if total else 1.0
-        eta = elapsed / frac - elapsed if frac > 0 else 0.0
+        run_frac = (done - base) / (total - base) if total > base else 1.0
+        eta = elapsed / run_frac - elapsed if run_frac > 0 else 0.0
         bar = "#" * int(30 * frac)
         self.stream.write(f"\r{label or self.label}: [{bar:<30}] {done}/{total} {elapsed:5.0f}s eta {eta:4.0f}s ")
         self.stream.flush()

@@ -12,6 +12,10 @@ Requests (:func:`parse_request`; every field other than ``cmd`` and ``fault`` is
     {"cmd": "clear"}                    end every active fault now ("fault": NAME: that one)
     {"cmd": "status"}                   the active faults and the seconds left of each
     {"cmd": "lights", "lighting": "bulb"}   switch the building's lights (as SIGUSR2)
+    {"cmd": "goto", "x": 1.0, "y": 0.5, "theta": 0.0}   drive the base there (path through free
+                                        space; ``speed`` m/s optional), then stand still
+    {"cmd": "where"}                    the true pose now, and the goto's goal and state
+                                        (``idle``, ``wandering``, ``driving``, ``arrived``, ``blocked``)
     {"cmd": "ping"}
 
 Faults (``duration_s`` in (0, 600] s, default 2; ``fraction`` in (0, 1], default 1: the share
@@ -168,8 +172,21 @@ class Lights(_Request):
     lighting: str = Field(min_length=1, max_length=64)
 
 
-_COMMANDS: dict[str, type[_Request]] = {"clear": Clear, "status": Status, "ping": Ping, "lights": Lights}
-Request = _Inject | Clear | Status | Ping | Lights
+class Goto(_Request):
+    cmd: Literal["goto"]
+    x: float = Field(allow_inf_nan=False, description="m, map frame")
+    y: float = Field(allow_inf_nan=False, description="m, map frame")
+    theta: float = Field(0.0, allow_inf_nan=False, description="rad")
+    speed: float | None = Field(None, gt=0.0, le=2.0, allow_inf_nan=False, description="top speed, m/s")
+
+
+class Where(_Request):
+    cmd: Literal["where"]
+
+
+_COMMANDS: dict[str, type[_Request]] = {"clear": Clear, "status": Status, "ping": Ping, "lights": Lights,
+                                        "goto": Goto, "where": Where}
+Request = _Inject | Clear | Status | Ping | Lights | Goto | Where
 
 
 #: The odometry faults that are line faults of the board emulator, and their kind there.
@@ -270,6 +287,20 @@ class FaultController:
                 raise RequestError(f"lights: lighting: {exc}") from None
             self.lights(req.lighting)
             return {"ok": True, "cmd": "lights", "lighting": req.lighting}
+        if isinstance(req, Goto):
+            goto = getattr(self.robot, "goto", None)
+            if goto is None:
+                raise RequestError("goto: this simulator cannot drive its base to a pose")
+            try:
+                plan = goto(req.x, req.y, req.theta, req.speed)
+            except LinoLocError as exc:
+                raise RequestError(str(exc)) from None
+            return {"ok": True, "cmd": "goto", "goal": list(plan.goal), "waypoints": len(plan.waypoints)}
+        if isinstance(req, Where):
+            where = getattr(self.robot, "where", None)
+            if where is None:
+                raise RequestError("where: this simulator does not report its pose")
+            return {"ok": True, "cmd": "where", **where()}
         return {"ok": True, "cmd": req.cmd, "active": self.active()}  # type: ignore[union-attr]
 
     def inject(self, req: _Inject) -> dict[str, Any]:

@@ -66,6 +66,7 @@ from drivers.sim.drive import DrivePlanner, PlannerConfig
 from drivers.sim.dynamixel_emulator import DynamixelBusEmulator
 from drivers.sim.frame_transport import FRAME_TOPIC, encode_frame
 from drivers.sim.free_space import FreeSpace
+from drivers.sim.goto import PATH_CLEARANCE_M, GotoPlan, plan_path
 from drivers.sim.odometry_emulator import OdometryBoardEmulator
 from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.wheel_noise import WheelOdometryNoise
@@ -248,12 +249,13 @@ class SimRobot:
             float(start[1]),
             math.atan2(math.sin(start[2]), math.cos(start[2])),
         )
-        self.plan = (
+        self.plan: Any = (
             DrivePlanner(self.world, c.planner_config(), np.random.default_rng(c.seed), self.scene_changes)
             if c.drive
             else None
         )
         self.renderer: Renderer | None = None
+        self._wide_free: FreeSpace | None = None
         self.head = DynamixelBusEmulator((c.pan_id, c.tilt_id), link=c.head_link)
         self.odometry = OdometryBoardEmulator(
             link=c.odometry_link,
@@ -525,6 +527,38 @@ class SimRobot:
                     state = s
                     break
         return integrate(state.pose, state.v, state.omega, max(0.0, stamp - state.stamp))
+
+    def goto(self, x: float, y: float, theta: float, speed: float | None = None) -> GotoPlan:
+        """Send the base to the pose (x, y, theta) (map frame; m, rad) along a path through
+        free space (:mod:`drivers.sim.goto`), replacing whatever it was doing (wandering, an
+        earlier goal); it stands still once there. ``speed``: top speed (m/s; default the
+        configuration's). LinoLocError (one line) when the goal is not free for the base or
+        cannot be reached. Thread-safe."""
+        truth = self._truth
+        here = truth.pose if truth is not None else self._start_pose
+        if self._wide_free is None:  # the path keeps a clearance beyond the base's disc
+            self._wide_free = FreeSpace(self.world, self.free.radius + PATH_CLEARANCE_M, self.scene_changes)
+        path = plan_path(self.free, (here[0], here[1]), (float(x), float(y)), wide=self._wide_free)
+        v = self.config.speed if speed is None else float(speed)
+        plan = GotoPlan(path, float(theta), speed=v if v > 0 else 0.3, turn_rate=self.config.turn_rate)
+        self.plan = plan  # the base thread reads it at its next tick
+        log.info("sim robot: goto (%.3f, %.3f, %.3f) over %d waypoints", x, y, theta, len(path))
+        return plan
+
+    def where(self) -> dict[str, Any]:
+        """The true pose now and the goto's goal and state (``idle`` when no goal was sent;
+        else ``driving``, ``arrived`` or ``blocked``)."""
+        truth = self._truth
+        pose = truth.pose if truth is not None else self._start_pose
+        plan = self.plan
+        out: dict[str, Any] = {
+            "stamp": truth.stamp if truth is not None else self.stamp_now(),
+            "pose": [float(v) for v in pose],
+            "state": plan.state if isinstance(plan, GotoPlan) else ("wandering" if plan is not None else "idle"),
+        }
+        if isinstance(plan, GotoPlan):
+            out["goal"] = list(plan.goal)
+        return out
 
     def switch_lighting(self, lighting: str) -> None:
         """Switch the building's lights while running (a light switched on or off in a real

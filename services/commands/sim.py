@@ -164,6 +164,35 @@ def _exit_with_parent() -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
 
+class _SignalFlag:
+    """A flag that signal handlers set. Not a ``threading.Event``: its ``set`` takes the Event's
+    lock, and a handler that runs while the main thread holds that lock (inside ``wait``)
+    deadlocks the process, which then ignores every further SIGTERM (seen after a ``kill -9``
+    of the survey that started this simulator). Setting an attribute takes no lock."""
+
+    def __init__(self) -> None:
+        self._set = False
+
+    def set(self) -> None:
+        self._set = True
+
+    def clear(self) -> None:
+        self._set = False
+
+    def is_set(self) -> bool:
+        return self._set
+
+    def wait(self, timeout: float) -> bool:
+        """Sleep (in slices of 20 ms at most) until set or ``timeout`` s passed; whether set."""
+        end = time.monotonic() + timeout
+        while not self._set:
+            left = end - time.monotonic()
+            if left <= 0:
+                break
+            time.sleep(min(left, 0.02))
+        return self._set
+
+
 def run_sim(args: argparse.Namespace) -> int:
     import zmq
 
@@ -171,9 +200,9 @@ def run_sim(args: argparse.Namespace) -> int:
     from drivers.sim.robot import SimRobot, TruthSample, bind
     from services.messages import Pose2D, TruthMessage, encode
 
-    done = threading.Event()
-    unplug = threading.Event()
-    switch = threading.Event()
+    done = _SignalFlag()
+    unplug = _SignalFlag()
+    switch = _SignalFlag()
     previous = {
         s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
     }

@@ -10,6 +10,9 @@ DEGREES, skipping poses where the robot (radius ``--radius``) would touch furnit
 walls; the same poses under every lighting. With stereo (the default) every row has the
 right image and the sparse disparity of the product's block matcher, as on the robot; the
 renderer's exact dense depth instead only with ``--dense-depth``. See :mod:`drivers.sim.survey`.
+
+With ``--robot`` the survey is made by the robot itself (the simulated one when none is
+attached): :mod:`services.commands.robot_survey_cmd`.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from drivers.sim.renderer import CameraModel
 from drivers.sim.survey import run_survey
 from drivers.sim.world import load_world
 from lino_loc.errors import LinoLocError
+from services.commands.robot_survey_cmd import add_robot_arguments
 from services.progress import Progress
 
 
@@ -31,6 +35,10 @@ def _changes(text: str) -> tuple[str, ...]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.robot:
+        from services.commands.robot_survey_cmd import run_robot_survey
+
+        return run_robot_survey(args)
     if args.step <= 0 or args.heading_step <= 0:
         raise LinoLocError("--step and --heading-step must be positive")
     if args.width < 8 or args.height < 8:
@@ -66,7 +74,7 @@ def _run(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "survey",
-        help="render a survey of a simulated world into a dataset folder",
+        help="survey a building into a dataset folder: rendered (simulated worlds) or with the robot (--robot)",
         description="Render the camera views on a grid of poses of a simulated world and write a "
                     "dataset folder (images, poses, condition; with stereo the right images and the "
                     "block matcher's sparse disparity; the renderer's dense depth instead with --dense-depth).",
@@ -89,4 +97,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "dense-depth)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
     p.add_argument("--json", action="store_true", help="print one JSON summary on stdout")
+    add_robot_arguments(p)
     p.set_defaults(func=_run)

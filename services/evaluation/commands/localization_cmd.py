@@ -14,6 +14,7 @@ docs/evaluations.md).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 from lino_loc.disparity import STEREO_PRESETS
@@ -67,6 +68,34 @@ def add_channels_option(p: argparse.ArgumentParser, default: str = "intensity") 
                    "predictive likelihood); default: the configuration's")
 
 
+def given_map(path: str | None, channels: tuple[str, ...]):  # -> AppearanceMap | None
+    """``--map FILE``: the map to evaluate instead of the rendered survey's (None without it).
+    LinoLocError (one line) when it cannot be loaded or lacks a channel of ``--channels``."""
+    if not path:
+        return None
+    from lino_loc.appearance_map import AppearanceMap
+
+    amap = AppearanceMap.load(path)
+    missing = [c for c in channels if c not in amap.channels]
+    if missing:
+        raise LinoLocError(f"--map {path}: has no {', '.join(missing)} channel (it has "
+                           f"{', '.join(amap.channels)}); match --channels to it")
+    return amap
+
+
+MAP_HELP = ("evaluate this map file (e.g. `lino-loc map build` of a `survey --robot` dataset) instead of "
+            "the rendered survey's; the test views are the same; its working size and preprocessing are the map's")
+
+
+def add_map_option(p: argparse.ArgumentParser, help: str = MAP_HELP) -> None:
+    p.add_argument("--map", default=None, metavar="FILE", help=help)
+
+
+def map_record(path: str, amap) -> dict:  # amap: AppearanceMap
+    """What the JSON says of a ``--map`` file: its path and its sessions (``map extend``)."""
+    return {"file": str(path), "sessions": [s.model_dump() for s in amap.session_list()]}
+
+
 # --------------------------------------------------------------------------- global
 
 
@@ -79,8 +108,13 @@ def _global(args: argparse.Namespace) -> int:
                         starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
                         j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
                         channels=parse_channels(args.channels), sensor_model=args.sensor_model)
+    amap = given_map(args.map, setup.channels)
+    if amap is not None:
+        setup = dataclasses.replace(setup, size=amap.size, preprocess=amap.preprocess)
     bar, cb = _progress()
-    res = run(setup, _localizer_config(args), progress=cb)  # type: ignore[arg-type]
+    res = run(setup, _localizer_config(args), appearance_map=amap, progress=cb)  # type: ignore[arg-type]
+    if amap is not None:
+        res["map"] = map_record(args.map, amap)
     bar.close()
     if args.json:
         print(json.dumps(res))
@@ -126,23 +160,19 @@ def _tracking(args: argparse.Namespace) -> int:
                           switch_lights=_switch_lights(args.switch_lights, lights),
                           seed=args.seed, workers=args.workers, channels=parse_channels(args.channels),
                           stereo=STEREO_PRESETS[args.stereo])
+    amap = given_map(args.map, ())
     maps = None
-    if args.map is not None:  # a map file instead of the rendered survey: its preprocessing and channels
-        from dataclasses import replace
-
-        from lino_loc.appearance_map import AppearanceMap
-
-        amap = AppearanceMap.load(args.map)
-        setup = replace(setup, preprocess=(amap.preprocess,), channels=tuple(amap.channels),
-                        features=amap.channels["intensity"].n_features, width=amap.camera.width,
-                        height=amap.camera.height, size=amap.size)
+    if amap is not None:  # the map's preprocessing, channels, features and camera size
+        setup = dataclasses.replace(setup, preprocess=(amap.preprocess,), channels=tuple(amap.channels),
+                                    features=amap.channels["intensity"].n_features, width=amap.camera.width,
+                                    height=amap.camera.height, size=amap.size)
         maps = {amap.preprocess: amap}
     bar, cb = _progress()
     res = run(setup, _localizer_config(args), maps=maps, trajectories=args.trajectories,  # type: ignore[arg-type]
               progress=cb)
     bar.close()
-    if args.map is not None:
-        res["map"] = {"file": args.map, "sessions": [s.model_dump() for s in maps[setup.preprocess[0]].session_list()]}
+    if amap is not None:
+        res["map"] = map_record(args.map, amap)
     if args.json:
         print(json.dumps(res))
         return 0
@@ -220,6 +250,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, help="rendering processes (default: all cores)")
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_map_option(p)
     p.set_defaults(func=_global)
 
     from services.evaluation.tracking import DEFAULT_CHANGES, DEFAULT_CHANNELS, DEFAULT_PREPROCESS
@@ -244,10 +275,6 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="skip the runs with kidnap recovery switched off")
     p.add_argument("--no-kidnap", action="store_true",
                    help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
-    p.add_argument("--map", default=None, metavar="FILE",
-                   help="localize against this map file (e.g. one extended by `lino-loc map extend`) instead "
-                        "of the rendered tube survey; its preprocessing, features, channels, camera size and "
-                        "working size are used (the frames are rendered at its camera's size)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
                    help="write estimated and true trajectories (TUM format) to DIR")
     add_channels_option(p, ",".join(DEFAULT_CHANNELS))
@@ -255,6 +282,10 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--config", default=None, help="take the [localizer] settings from this configuration file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_map_option(p, "localize against this map file (e.g. one extended by `lino-loc map extend`, or built "
+                   "from a `survey --robot` dataset) instead of the rendered tube survey; its preprocessing, "
+                   "features, channels, camera size and working size are used (the frames are rendered at "
+                   "its camera's size)")
     p.set_defaults(func=_tracking)
 
     p = eval_sub.add_parser("leave-out", help="sensor-model error (eq. 10) on held-out frames of a dataset")
