@@ -34,6 +34,7 @@ import time
 from typing import Any, Protocol, TextIO
 
 from lino_loc.errors import LinoLocError
+from services.curve_auth import is_loopback
 
 log = logging.getLogger("lino_loc.survey")
 
@@ -137,17 +138,8 @@ class PromptMover:
 
 def check_local(endpoint: str) -> str:
     """``endpoint`` if it is loopback / ipc / inproc (the control has no authentication)."""
-    import ipaddress
-
-    if endpoint.startswith(("ipc://", "inproc://")):
+    if is_loopback(endpoint):
         return endpoint
-    if endpoint.startswith("tcp://"):
-        host = endpoint[len("tcp://"):].rsplit(":", 1)[0].strip("[]")
-        try:
-            if host == "localhost" or ipaddress.ip_address(host).is_loopback:
-                return endpoint
-        except ValueError:
-            pass
     raise LinoLocError(f"--control {endpoint!r}: not a loopback endpoint (tcp://127.0.0.1:PORT or ipc://PATH): "
                        "the survey's control has no authentication")
 
