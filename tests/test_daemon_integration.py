@@ -37,6 +37,8 @@ from typing import Any
 import pytest
 import zmq
 
+from services.evaluation.honesty import WRONG_M
+
 ROOT = Path(__file__).resolve().parents[1]
 #: Map cache shared by runs of this test module (rebuilt when its build record differs).
 MAP_CACHE = Path(tempfile.gettempdir()) / "lino-loc-test-maps" / "office-80x60-50cm-15deg-5f.npz"
@@ -528,10 +530,12 @@ def test_kill_9_and_restart_resume_from_the_saved_pose(rig: Rig) -> None:
     log = rig.log.read_text()
     assert "to be confirmed by the views" in log
     assert "the odometry check is skipped: the saved state has no odometry counters" in log
-    _wait_tracking(rig, 60)
+    _wait_tracking(rig, 60)  # converged: three poses in a row tracking within 0.5 m
+    # and no pose before that was confidently wrong (`tracking` over WRONG_M = 1 m off): this
+    # map's own tracking error reaches 0.45-0.6 m (docs/results.md, "Honest restarts")
     wrong = [(p["seq"], round(e, 2)) for p in s.poses_since(t_restart)
-             if p["state"] == "tracking" and (e := s.error(p)) is not None and e > 0.5]
-    assert not wrong, f"tracking poses more than 0.5 m wrong after the restart: {wrong}"
+             if p["state"] == "tracking" and (e := s.error(p)) is not None and e > WRONG_M]
+    assert not wrong, f"tracking poses more than {WRONG_M} m wrong after the restart: {wrong}"
 
 
 def test_a_robot_that_moved_since_the_save_is_refused_by_the_boards_counters(rig: Rig) -> None:
