@@ -87,6 +87,13 @@ class LostConfig(BaseModel):
         "many independent views' worth of observations (until then: still 'global'); chosen on "
         "the tracking evaluation's three worlds together (docs/results.md, 'Honest states')",
     )
+    confirm_share: float = Field(
+        0.0, ge=0.0, le=1.0, description="a hit counts towards the confirmation only when at "
+        "least this share of the view's sensor-model kernel weight lies near the belief "
+        "(view_share: within CONFIRM_RADIUS_XY and CONFIRM_RADIUS_THETA of the estimate's "
+        "camera pose); views that other places explain as well confirm nothing. 0: every hit "
+        "counts",
+    )
 
 
 def independent_views(
@@ -131,6 +138,41 @@ def camera_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:
         if abs(dp) >= MIN_PAN_CHANGE:
             d[2] += dp
     return d
+
+
+#: m and rad: a kernel of the view's sensor-model mixture this close to the estimate's camera
+#: pose counts as pointing at the belief (:func:`view_share`): the confident-wrong bound of the
+#: evaluations (1 m) and two kernel widths in heading (the sensor model's sigma_theta, 0.3 rad)
+CONFIRM_RADIUS_XY = 1.0
+CONFIRM_RADIUS_THETA = 0.6
+
+
+def view_share(
+    kernel_poses: ArrayLike, kernel_log_weights: ArrayLike, camera_pose: ArrayLike
+) -> float:
+    """The share of a view's sensor-model kernel weight near a camera pose: sum of w_k over
+    the kernels k within :data:`CONFIRM_RADIUS_XY` (position) and
+    :data:`CONFIRM_RADIUS_THETA` (heading, wrapped) of ``camera_pose``, over the sum of all
+    w_k (the outlier component not counted), in [0, 1]; nan without a kernel of finite weight.
+
+    Under a uniform prior over the map this is the posterior probability, given the view
+    alone, that the camera is near that pose (the kernels are narrow beside the radii). A view
+    the belief explains while other places explain it as well (a blank wall, one of a row of
+    identical doors) has a small share: such hits say the belief is possible, not that it is
+    the place."""
+    p = np.asarray(kernel_poses, dtype=np.float64).reshape(-1, 3)
+    lw = np.asarray(kernel_log_weights, dtype=np.float64).reshape(-1)
+    finite = np.isfinite(lw)
+    if not bool(finite.any()):
+        return math.nan
+    w = np.exp(lw[finite] - float(lw[finite].max()))
+    c = np.asarray(camera_pose, dtype=np.float64).reshape(3)
+    q = p[finite]
+    dth = np.abs((q[:, 2] - c[2] + math.pi) % (2.0 * math.pi) - math.pi)
+    near = (np.hypot(q[:, 0] - c[0], q[:, 1] - c[1]) <= CONFIRM_RADIUS_XY) & (
+        dth <= CONFIRM_RADIUS_THETA
+    )
+    return float(w[near].sum() / w.sum())
 
 
 @dataclass
@@ -196,17 +238,22 @@ class LostDetector:
         ``trigger_doubt``, before the belief is declared lost."""
         return self.score / self.config.threshold
 
-    def update(self, excess: float, delta: ArrayLike, learn: bool = True) -> bool:
+    def update(
+        self, excess: float, delta: ArrayLike, learn: bool = True, share: float = 1.0
+    ) -> bool:
         """One observation: ``excess`` = predictive log-likelihood minus the outlier floor
         (nats; -inf or nan: a miss), ``delta`` the camera's pose increment (dx, dy, dtheta)
         since the last one (:func:`camera_increment`: the odometry's, with the pan change);
-        ``learn``: the belief is trusted (tracking), so its hits and misses teach rho.
+        ``learn``: the belief is trusted (tracking), so its hits and misses teach rho;
+        ``share``: the view's kernel weight near the belief (:func:`view_share`), a hit
+        confirms the belief only when it is at least ``confirm_share``.
         Returns whether the belief is lost."""
         v = independent_views(delta)
         if v <= 0.0:
             return self.lost
         hit = bool(excess > HIT_NATS)  # nan: a miss
-        self._belief_hits += v if hit else 0.0
+        if hit and share >= self.config.confirm_share:
+            self._belief_hits += v
         rho = min(max(self.hit_rate, 1e-3), 1.0 - 1e-3)
         p0 = CHANCE_HIT_RATE
         llr = min(0.0, math.log(p0 / rho)) if hit else max(0.0, math.log((1.0 - p0) / (1.0 - rho)))

@@ -78,6 +78,7 @@ from lino_loc.lost_detection import (
     LostConfig,
     LostDetector,
     independent_views,
+    view_share,
     viewed_increment,
 )
 from lino_loc.motion_model import OdometryMotionModel
@@ -505,9 +506,25 @@ class AuxiliaryParticleFilter:
             elif v > 0.0:
                 self._recall_run = 0.0
         learn = self._state != "global"
-        self.lost_detector.update(excess, d, learn=learn)
+        share = 1.0
+        if self.config.lost.confirm_share > 0.0 and excess > HIT_NATS:
+            share = self._view_share(mixture, pan)
+        self.lost_detector.update(excess, d, learn=learn, share=share)
         self.view_fit.update(self._channel_excess(mixture, excess, pan), independent_views(d), learn,
                              self._channel_overlap(mixture))
+
+    def _view_share(self, mixture: PoseMixture, pan: float) -> float:
+        """The view's kernel weight near the estimate's camera pose
+        (``lino_loc.lost_detection.view_share``), the largest over the observation's channels
+        (a channel that singles out the belief where the other's kernels scatter, as intensity's
+        do under a light the map was not made in, confirms it); the fused mixture's when the
+        channels are not known; nan when no channel has a kernel."""
+        mean = self._dominant()[0]
+        cam = (float(mean[0]), float(mean[1]), float(mean[2]) + pan)
+        parts = list(mixture.channels.values()) if mixture.channels else [mixture]
+        shares = [view_share(m.poses, m.log_weights, cam) for m in parts]
+        finite = [x for x in shares if not math.isnan(x)]
+        return max(finite) if finite else math.nan
 
     def _channel_overlap(self, mixture: PoseMixture) -> float:
         """The overlap of the view's two channel mixtures (``lino_loc.channel_agreement``)

@@ -399,7 +399,7 @@ def test_set_pose_and_global_localization_over_control(rig: Rig) -> None:
     # set_pose at the truth: tracking again at once
     # the latest truth (the robot drives on: an older one, e.g. at the last pose's stamp, is
     # further behind the robot when the request is applied, the more so on a loaded machine)
-    t = s.truths[-1][1:]
+    t = s.wait_for(lambda: s.truths[-1] if s.truths else None, 20, "the simulator's truth")[1:]
     reply = request(rig.rep, {"cmd": "set_pose", "pose": {"x": t[0], "y": t[1], "theta": t[2]}})
     assert reply["ok"] is True
     t2 = time.time()
@@ -500,7 +500,8 @@ def test_kill_9_and_restart_resume_from_the_saved_pose(rig: Rig) -> None:
     s = rig.stream
     assert s is not None and rig.daemon is not None
     # start from a known belief (an operator's set_pose at the true pose): tracking
-    t = s.truths[-1]
+    # (the first truth may not have arrived yet when this test runs alone)
+    t = s.wait_for(lambda: s.truths[-1] if s.truths else None, 20, "the simulator's truth")
     reply = request(rig.rep, {"cmd": "set_pose", "pose": {"x": t[1], "y": t[2], "theta": t[3]}})
     assert reply["ok"] is True, reply
     t0 = time.time()

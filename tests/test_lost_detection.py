@@ -10,6 +10,8 @@ import pytest
 
 from lino_loc.lost_detection import (
     CHANCE_HIT_RATE,
+    CONFIRM_RADIUS_THETA,
+    CONFIRM_RADIUS_XY,
     MIN_PAN_CHANGE,
     VIEW_THETA,
     VIEW_XY,
@@ -17,6 +19,7 @@ from lino_loc.lost_detection import (
     LostDetector,
     camera_increment,
     independent_views,
+    view_share,
 )
 
 STEP = np.array([0.35, 0.0, 0.0])  # one independent view per observation
@@ -95,6 +98,48 @@ def test_a_new_belief_must_be_confirmed_and_keeps_the_learnt_reliability() -> No
     assert not det.confirmed and det.hit_rate == 0.5
     det.confirm()  # a pose given by the user
     assert det.confirmed
+
+
+def test_view_share_is_the_kernel_weight_near_the_pose() -> None:
+    """Closed form: the weights of the kernels within CONFIRM_RADIUS_XY and
+    CONFIRM_RADIUS_THETA (heading wrapped) of the pose, over all kernels' weights."""
+    poses = np.array([
+        [0.0, 0.0, 0.0],  # at the pose
+        [CONFIRM_RADIUS_XY * 0.99, 0.0, 0.0],  # just inside in position
+        [0.0, 0.0, 2.0 * np.pi - CONFIRM_RADIUS_THETA * 0.99],  # inside once wrapped
+        [CONFIRM_RADIUS_XY * 1.01, 0.0, 0.0],  # just outside in position
+        [0.0, 0.0, CONFIRM_RADIUS_THETA * 1.01],  # just outside in heading
+        [5.0, 5.0, 0.0],  # another place
+    ])
+    w = np.array([0.1, 0.2, 0.05, 0.15, 0.25, 0.25])
+    lw = np.log(w * 0.5)  # an outlier component of weight 1/2 is not counted
+    assert view_share(poses, lw, (0.0, 0.0, 0.0)) == pytest.approx(0.35)
+    assert view_share(poses, lw, (5.0, 5.0, 0.0)) == pytest.approx(0.25)
+    assert view_share(poses, lw, (-3.0, 0.0, 0.0)) == 0.0
+    assert np.isnan(view_share(poses, np.full(6, -np.inf), (0.0, 0.0, 0.0)))
+
+
+def test_only_views_that_single_out_the_belief_confirm_it() -> None:
+    """With ``confirm_share``, a hit whose view points elsewhere as much as at the belief
+    (share below the setting) does not count towards the confirmation; the lost test's
+    evidence is the same with or without it."""
+    plain = LostDetector(LostConfig(confirm_views=2.0))
+    strict = LostDetector(LostConfig(confirm_views=2.0, confirm_share=0.5))
+    for det in (plain, strict):
+        _learn(det, 0.9)
+        det.new_belief()
+    for _ in range(3):  # hits of views shared with four other places
+        plain.update(3.0, STEP, learn=False, share=0.2)
+        strict.update(3.0, STEP, learn=False, share=0.2)
+    assert plain.confirmed and not strict.confirmed
+    assert plain.score == strict.score
+    strict.update(3.0, STEP, learn=False, share=0.5)
+    assert not strict.confirmed  # one view's worth
+    strict.update(3.0, STEP, learn=False, share=0.9)
+    assert strict.confirmed
+    nan_share = LostDetector(LostConfig(confirm_views=1.0, confirm_share=0.5))
+    nan_share.update(3.0, STEP, learn=False, share=float("nan"))
+    assert not nan_share.confirmed  # a view with no kernel singles out nothing
 
 
 def test_doubt_grows_with_the_evidence_and_reaches_one_when_lost() -> None:
