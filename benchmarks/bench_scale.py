@@ -40,16 +40,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--startup-repeats", type=int, default=3)
     ap.add_argument("--skip", nargs="*", default=[], choices=("search", "update", "startup"))
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep the HNSW graphs in this folder (default: a temporary one, so every graph is built)")
+    ap.add_argument("--keep-maps", type=Path, default=None, help="save the synthetic maps in this folder")
     args = ap.parse_args(argv)
     from services.evaluation.synthetic_floor_map import floor_map
 
     result: dict = {"machine_start": machine(), "sizes": {}}
     with tempfile.TemporaryDirectory(prefix="lino-scale-") as tmp:
-        cache = Path(tmp) / "index"
-        cache.mkdir()
+        cache = args.cache or Path(tmp) / "index"
+        cache.mkdir(parents=True, exist_ok=True)
         for n in args.entries:
             amap = floor_map(n)
-            path = amap.save(Path(tmp) / f"floor-{n}.map.npz")
+            path = amap.save((args.keep_maps or Path(tmp)) / f"floor-{n}.map.npz")
             row: dict = {"map_file_mb": path.stat().st_size / 1e6}
             if "search" not in args.skip:
                 row.update(scale_cost.search_table(n, cache=cache, amap=amap))

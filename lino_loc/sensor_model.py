@@ -660,9 +660,10 @@ class NearestNeighbourSensorModel:
 
         rng = np.random.default_rng(12345)
         rows = rng.integers(0, self.features.shape[0], n_probe)
-        probes = self.features[rows] + 0.25 * self.features.std(axis=0) * rng.standard_normal(
-            (n_probe, self.dim)
-        )
+        # the spread from at most ~10k rows: std() of the whole map makes a temporary copy of
+        # it (160 MB at 1M entries, docs/scale.md)
+        spread = self.features[:: max(1, self.features.shape[0] // 10000)].std(axis=0)
+        probes = self.features[rows] + 0.25 * spread * rng.standard_normal((n_probe, self.dim))
         tree, timings = self._tree, {}
         for kind in ("kdtree", "brute", "kdtree", "brute"):
             self._tree = tree if kind == "kdtree" else None

@@ -58,16 +58,22 @@ def queries(n: int, seed: int = 1) -> tuple[Any, Any]:
     return q, floor_features(q, noise=DEFAULT_NOISE, rng=rng)
 
 
-def _median_ms(fn: Any, ys: Any, repeats: int) -> float:
+def _median_ms(fn: Any, ys: Any, repeats: int, cpu: dict[str, float] | None = None) -> float:
+    """Median wall-clock ms of ``fn(y)`` over ``repeats`` calls cycling through ``ys``; with
+    ``cpu`` also the median process-CPU ms in ``cpu["cpu_ms"]`` (the fairer figure on a
+    loaded machine)."""
     import numpy as np
 
     fn(ys[0])
-    ts = []
+    ts, cs = [], []
     for r in range(repeats):
         y = ys[r % len(ys)]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn(y)
         ts.append(time.perf_counter() - t0)
+        cs.append(time.process_time() - c0)
+    if cpu is not None:
+        cpu["cpu_ms"] = float(np.median(cs) * 1e3)
     return float(np.median(ts) * 1e3)
 
 
@@ -103,8 +109,8 @@ def search_table(entries: int, n_queries: int = 200, repeats: int = 400, faiss_h
         if exact is None:
             exact = idx
         rec, same = _recall(idx, exact)
-        row = {"build_s": build, "rss_growth_mb": grown, "query_ms": _median_ms(model.neighbours, ys, repeats),
-               "recall": rec, "same_set": same}
+        row: dict[str, Any] = {"build_s": build, "rss_growth_mb": grown, "recall": rec, "same_set": same}
+        row["query_ms"] = _median_ms(model.neighbours, ys, repeats, row)
         if kind == "hnsw":
             graph = model._graph
             assert graph is not None
@@ -154,9 +160,10 @@ def _faiss_rows(f: Any, ys: Any, exact: Any, repeats: int, with_hnsw: bool) -> d
             ix.hnsw.efSearch = 40
         _, lab = ix.search(ys.astype(np.float32), J)
         rec, same = _recall(lab, exact)
-        out[name] = {"build_s": build, "rss_growth_mb": grown, "index_mb": len(faiss.serialize_index(ix)) / 1e6,
-                     "query_ms": _median_ms(lambda y, ix=ix: ix.search(y.astype(np.float32)[None], J), ys, repeats),
-                     "recall": rec, "same_set": same}
+        row: dict[str, Any] = {"build_s": build, "rss_growth_mb": grown,
+                               "index_mb": len(faiss.serialize_index(ix)) / 1e6, "recall": rec, "same_set": same}
+        row["query_ms"] = _median_ms(lambda y, ix=ix: ix.search(y.astype(np.float32)[None], J), ys, repeats, row)
+        out[name] = row
         if name == "faiss_hnsw32":
             out[name]["ef_search"] = 40
     return out
