@@ -77,6 +77,23 @@ def _config(args: argparse.Namespace, tmp: Path, pub: str, rep: str) -> str:
         f"office-tube-75cm-15deg-{args.features}f-v{args.virtual_headings}-{args.width}x{args.height}"
         + ("-disparity" + (f"-d{dfeat}f" if dfeat else "") if getattr(args, "disparity", False) else "") + ".npz"
     )
+    map_section = f"""[map]
+path = "{map_path}"
+[map.build]
+world = "office"
+step = 0.75
+heading_step_deg = 15.0
+width = {args.width}
+height = {args.height}
+features = {args.features}
+{f"disparity_features = {dfeat}" if dfeat else ""}
+virtual_headings = {args.virtual_headings}
+disparity = {"true" if getattr(args, "disparity", False) else "false"}"""
+    if getattr(args, "map", None):  # a given map file (e.g. a synthetic one of benchmarks/bench_scale.py)
+        map_section = f"""[map]
+path = "{Path(args.map).expanduser()}"
+mmap = {"true" if args.mmap else "false"}"""
+    sensor = f'index = "{args.index}"' + (f'\nindex_cache = "{args.index_cache}"' if args.index_cache else "")
     return f"""
 [devices.camera]
 kind = "sim"
@@ -92,18 +109,9 @@ port = "auto"
 [devices.odometry]
 kind = "serial"
 port = "auto"
-[map]
-path = "{map_path}"
-[map.build]
-world = "office"
-step = 0.75
-heading_step_deg = 15.0
-width = {args.width}
-height = {args.height}
-features = {args.features}
-{f"disparity_features = {dfeat}" if dfeat else ""}
-virtual_headings = {args.virtual_headings}
-disparity = {"true" if getattr(args, "disparity", False) else "false"}
+{map_section}
+[localizer.sensor]
+{sensor}
 [localizer.filter]
 n_particles = {args.particles}
 [active_vision]
@@ -252,6 +260,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="the disparity channel's features (default config/sim.toml's, %(default)s)")
     p.add_argument("--virtual-headings", type=int, default=5,
                    help="map entries per survey image, as config/sim.toml (default %(default)s; 1: images alone)")
+    p.add_argument("--map", default=None,
+                   help="use this map file as it is (no build; e.g. a synthetic floor map), with --mmap to map it")
+    p.add_argument("--mmap", action="store_true", help="with --map: [map] mmap = true")
+    p.add_argument("--index", default="auto", choices=("auto", "brute", "kdtree", "hnsw"),
+                   help="[localizer.sensor] index (default %(default)s)")
+    p.add_argument("--index-cache", default=None, help="[localizer.sensor] index_cache (the hnsw graph's folder)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
     args = p.parse_args(argv)
     runs = [one_run(args) for _ in range(args.repeat)]
@@ -270,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "service",
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
-        "config": {"world": "office", "width": args.width, "height": args.height, "fps": args.fps,
+        "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
                    "particles": args.particles, "active_vision": args.active_vision,
                    "seconds": args.seconds, "repeat": args.repeat},
         "pose_rate_hz": med(["pose_rate_hz"]),

@@ -324,6 +324,56 @@ def _check_sessions(path: Path, sessions: Sequence[SessionInfo], n: int) -> None
         raise LinoLocError(f"{path}: corrupt map file: the sessions hold {at} entries but the map has {n}")
 
 
+_ZIP_LOCAL_HEADER = 30  # bytes of a zip local file header before its name and extra field
+
+
+def _mapped_arrays(path: Path, npz: Any) -> dict[str, np.ndarray]:
+    """Every non-header array of the open map archive ``npz`` (``np.load`` of ``path``) as a
+    read-only ``np.memmap`` into ``path``: ``np.savez`` stores each ``.npy`` uncompressed
+    (``ZIP_STORED``), so its data lie contiguously in the file at the member's offset (the
+    local header's fixed 30 bytes, its name and extra field, then the ``.npy`` header). A
+    compressed member (an archive written by ``np.savez_compressed``) or an array of another
+    layout is read into memory as without ``mmap``. A member that ends beyond the file is a
+    ValueError (the caller reports a truncated file)."""
+    import struct
+
+    arrays: dict[str, np.ndarray] = {}
+    zf: zipfile.ZipFile = npz.zip
+    with open(path, "rb") as fh:
+        for key in npz.files:
+            if key == HEADER_KEY:
+                continue
+            info = zf.getinfo(key + ".npy") if key + ".npy" in zf.namelist() else zf.getinfo(key)
+            if info.compress_type != zipfile.ZIP_STORED:
+                arrays[key] = npz[key]
+                continue
+            fh.seek(info.header_offset)
+            local = fh.read(_ZIP_LOCAL_HEADER)
+            if len(local) != _ZIP_LOCAL_HEADER or local[:4] != _ZIP_MAGIC:
+                raise ValueError(f"member {key!r}: bad local header")
+            name_len, extra_len = struct.unpack("<HH", local[26:30])
+            fh.seek(info.header_offset + _ZIP_LOCAL_HEADER + name_len + extra_len)
+            version = np.lib.format.read_magic(fh)
+            if version not in ((1, 0), (2, 0)):  # np.save writes 1.0, 2.0 for huge headers
+                arrays[key] = npz[key]
+                continue
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(fh)
+            if dtype.hasobject:
+                raise ValueError(f"member {key!r}: object arrays are not map arrays")
+            offset = fh.tell()
+            nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+            if offset + nbytes > os.fstat(fh.fileno()).st_size:
+                raise ValueError(f"member {key!r} ends beyond the end of the file")
+            if nbytes == 0:
+                arrays[key] = np.zeros(shape, dtype=dtype)
+            else:
+                # a plain ndarray view (it keeps the map open): no np.memmap subclass semantics
+                arrays[key] = np.asarray(np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape,
+                                                   order="F" if fortran else "C"))
+    return arrays
+
+
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
@@ -484,8 +534,16 @@ class AppearanceMap:
         return path
 
     @classmethod
-    def load(cls, path: Path | str) -> AppearanceMap:
-        """Read and verify a map file; any problem -> one-line :class:`LinoLocError`."""
+    def load(cls, path: Path | str, mmap: bool = False) -> AppearanceMap:
+        """Read and verify a map file; any problem -> one-line :class:`LinoLocError`.
+
+        ``mmap``: the arrays are read-only memory maps of the file instead of copies in memory
+        (:func:`_mapped_arrays`; the file is the same format, every map file written so far
+        can be mapped). The checks are the same (the checksum reads every byte once, through
+        the page cache); the pages are the file's, shared with other processes that map it
+        and given back by the kernel under memory pressure, and no copy is made while
+        loading (figures: docs/scale.md). A map file replaced while mapped (``atomic_write``
+        renames over it) leaves the mapping on the old file."""
         path = Path(path)
         if not path.exists():
             raise LinoLocError(f"{path}: no such map file")
@@ -505,7 +563,10 @@ class AppearanceMap:
                     raise LinoLocError(f"{path}: not a lino-loc map file (an .npz archive without a map header)")
                 header_raw = npz[HEADER_KEY]
                 header = cls._parse_header(path, header_raw)
-                arrays = {k: npz[k] for k in npz.files if k != HEADER_KEY}
+                if mmap:
+                    arrays = _mapped_arrays(path, npz)
+                else:
+                    arrays = {k: npz[k] for k in npz.files if k != HEADER_KEY}
         except LinoLocError:
             raise
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:

@@ -105,7 +105,7 @@ class Localizer:
             raise LinoLocError(f"appearance map: no 'intensity' channel (has {sorted(channels)})")
         self.bounds = Bounds.from_poses(poses, self.config.sensor.map_margin)
         self.models: dict[str, NearestNeighbourSensorModel | InterpolatedSensorModel] = {
-            name: self._model(poses, np.asarray(ch.features, dtype=np.float64))
+            name: self._model(poses, np.asarray(ch.features))
             for name, ch in channels.items()
             if name in ("intensity", "disparity")
         }
@@ -132,7 +132,10 @@ class Localizer:
         c = self.config
         j = min(c.sensor.j, poses.shape[0])
         if c.sensor_model == "interpolated":
+            features = np.asarray(features, dtype=np.float64)
             return InterpolatedSensorModel(poses, features, c.sensor, c.interpolation, self.bounds, j)
+        # the model converts the features to float64 where its search needs it (the hnsw
+        # search reads the map's own float32 rows)
         return NearestNeighbourSensorModel(poses, features, c.sensor, j=j, bounds=self.bounds)
 
     # ----------------------------------------------------------------- observation

@@ -56,7 +56,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
-from typing import Literal
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +68,9 @@ from lino_loc.errors import LinoLocError
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 
+if TYPE_CHECKING:
+    from lino_loc.hnsw_index import HnswIndex
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 #: Which sensor model builds p(y | x): this module's J nearest map entries, or the map's
@@ -76,11 +80,13 @@ SensorModelKind = Literal["nearest_neighbour", "interpolated"]
 LOG_2PI = math.log(2.0 * math.pi)
 # Below this map size "auto" takes brute force without timing the tree (see docs/results.md).
 AUTO_KDTREE_MIN_ENTRIES = 2000
-#: Brute-force J-nearest search answers at most this many observations at a time: its
-#: (queries x map entries) float64 work arrays stay tens of megabytes (a map's own entries
-#: queried at once, as the action evaluator does, would otherwise need several per cent of
-#: a robot's memory for a 5000-entry map).
+#: Brute-force J-nearest search answers at most this many observations at a time, and at most
+#: BRUTE_QUERY_ELEMENTS / N of them on a map of N entries: its (queries x map entries) float64
+#: work arrays stay tens of megabytes (a map's own entries queried at once, as the action
+#: evaluator does, would otherwise need several per cent of a robot's memory for a 5000-entry
+#: map; 256 queries alone peaked at 0.7 GB on a map of 100k entries, docs/scale.md).
 BRUTE_QUERY_BLOCK = 256
+BRUTE_QUERY_ELEMENTS = 1 << 22
 
 
 def log_von_mises_norm(kappa: ArrayLike) -> FloatArray:
@@ -515,10 +521,17 @@ class SensorModelConfig(BaseModel):
         0.5, ge=0.0, lt=1.0, description="weight of the uniform component"
     )
     map_margin: float = Field(0.5, ge=0.0, description="margin (m) added around the map poses")
-    index: Literal["brute", "kdtree", "auto"] = Field(
+    index: Literal["brute", "kdtree", "hnsw", "auto"] = Field(
         "auto",
-        description="J-nearest search: vectorized brute force, scipy cKDTree, or auto (measure "
-        "both on the map at construction, take the tree only if it is clearly faster)",
+        description="J-nearest search: vectorized brute force, scipy cKDTree, hnsw (approximate: "
+        "an HNSW graph, lino_loc/hnsw_index.py, the optional extra 'scale'; for maps of 100k "
+        "entries and more, docs/scale.md), or auto (exact: measure brute force and the tree on "
+        "the map at construction, take the tree only if it is clearly faster)",
+    )
+    index_cache: Path | None = Field(
+        None,
+        description="folder where the hnsw search keeps its graph between starts (built once "
+        "per map, verified by SHA-256 when read); None: built at every start",
     )
 
 
@@ -590,7 +603,13 @@ class NearestNeighbourSensorModel:
     ) -> None:
         self.config = config or SensorModelConfig()
         self.poses = np.asarray(map_poses, dtype=np.float64)
-        self.features = np.ascontiguousarray(np.asarray(map_features, dtype=np.float64))
+        raw = np.asarray(map_features)
+        if self.config.index == "hnsw" and raw.dtype in (np.float32, np.float64):
+            # the graph holds its own float32 copy and the J distances are computed from
+            # these rows: no float64 copy of the whole map (it may be memory-mapped)
+            self.features = raw
+        else:
+            self.features = np.ascontiguousarray(raw, dtype=np.float64)
         if self.poses.ndim != 2 or self.poses.shape[1] != 3:
             raise LinoLocError(f"map poses: expected shape (N, 3), got {self.poses.shape}")
         if self.features.ndim != 2 or self.features.shape[0] != self.poses.shape[0]:
@@ -603,11 +622,18 @@ class NearestNeighbourSensorModel:
                 f"sensor model j={self.j}: must be between 1 and the map size {self.poses.shape[0]}"
             )
         self.bounds = bounds or Bounds.from_poses(self.poses, self.config.map_margin)
-        self._sqnorm = np.einsum("ij,ij->i", self.features, self.features)
         self._reference_distance: float | None = None
         self._widths: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._tree = None
+        self._graph: HnswIndex | None = None
         self.index_kind = "brute"
+        if self.config.index == "hnsw":
+            from lino_loc.hnsw_index import HnswIndex
+
+            self._graph = HnswIndex.build_or_load(self.features, self.config.index_cache)
+            self.index_kind = "hnsw"
+            return
+        self._sqnorm = np.einsum("ij,ij->i", self.features, self.features)
         if self.config.index == "kdtree" or (
             self.config.index == "auto" and self.poses.shape[0] >= AUTO_KDTREE_MIN_ENTRIES
         ):
@@ -634,9 +660,10 @@ class NearestNeighbourSensorModel:
 
         rng = np.random.default_rng(12345)
         rows = rng.integers(0, self.features.shape[0], n_probe)
-        probes = self.features[rows] + 0.25 * self.features.std(axis=0) * rng.standard_normal(
-            (n_probe, self.dim)
-        )
+        # the spread from at most ~10k rows: std() of the whole map makes a temporary copy of
+        # it (160 MB at 1M entries, docs/scale.md)
+        spread = self.features[:: max(1, self.features.shape[0] // 10000)].std(axis=0)
+        probes = self.features[rows] + 0.25 * spread * rng.standard_normal((n_probe, self.dim))
         tree, timings = self._tree, {}
         for kind in ("kdtree", "brute", "kdtree", "brute"):
             self._tree = tree if kind == "kdtree" else None
@@ -680,7 +707,8 @@ class NearestNeighbourSensorModel:
         (indices (B, J), squared distances (B, J)), sorted by distance (ties by index). ``j``
         overrides J.
 
-        The search (KD-tree or brute force, :attr:`index_kind`) only selects the J entries;
+        The search (KD-tree, brute force or the approximate HNSW graph, :attr:`index_kind`)
+        only selects the J entries;
         their squared distances are then computed one way for both, sum_k (f_k - y_k)^2, so the
         answer does not depend on which search "auto" chose (it times them on the machine it
         runs on): a replay of a recording gives the same weights to the bit."""
@@ -690,8 +718,9 @@ class NearestNeighbourSensorModel:
         if not np.all(np.isfinite(q)):
             raise LinoLocError("observed features: contain NaN or infinite values")
         j = self.j if j is None else min(int(j), self.poses.shape[0])
-        if q.shape[0] > BRUTE_QUERY_BLOCK:  # bound the (B, N) work arrays of brute force
-            parts = [self.neighbours(q[lo : lo + BRUTE_QUERY_BLOCK], j) for lo in range(0, q.shape[0], BRUTE_QUERY_BLOCK)]
+        block = max(1, min(BRUTE_QUERY_BLOCK, BRUTE_QUERY_ELEMENTS // self.poses.shape[0]))
+        if q.shape[0] > block:  # bound the (B, N) work arrays of brute force
+            parts = [self.neighbours(q[lo : lo + block], j) for lo in range(0, q.shape[0], block)]
             return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         idx = self._nearest(q, j)
         diff = self.features[idx] - q[:, None, :]
@@ -701,6 +730,15 @@ class NearestNeighbourSensorModel:
 
     def _nearest(self, q: FloatArray, j: int) -> IntArray:
         """Indices (B, j), in no particular order, of the j map entries nearest to each row of q."""
+        n = self.features.shape[0]
+        if self._graph is not None:
+            if j < n:
+                try:
+                    return self._graph.query(q, j)
+                except RuntimeError:  # hnswlib found fewer than j entries (a tiny map): exact
+                    pass
+            d2 = np.stack([np.einsum("nk,nk->n", self.features - row, self.features - row) for row in q])
+            return np.argsort(d2, axis=1, kind="stable")[:, :j].astype(np.int64)
         if self._tree is not None:
             # one query as a vector (cheaper than cKDTree's 2-D argument handling)
             _, idx = self._tree.query(q[0] if q.shape[0] == 1 else q, k=j)
@@ -712,7 +750,6 @@ class NearestNeighbourSensorModel:
         else:
             cross = q @ self.features.T
         d2 = self._sqnorm[None, :] - 2.0 * cross + np.einsum("ij,ij->i", q, q)[:, None]
-        n = d2.shape[1]
         if j < n:
             return np.argpartition(d2, j - 1, axis=1)[:, :j].astype(np.int64)
         return np.broadcast_to(np.arange(n, dtype=np.int64), (q.shape[0], n)).copy()

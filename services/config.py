@@ -205,6 +205,10 @@ class MapConfig(_Section):
     build: MapBuildConfig | None = Field(
         None, description="build the map here if the file is missing (simulation only)"
     )
+    mmap: bool = Field(
+        False, description="memory-map the map file's arrays instead of reading them into memory "
+        "(the same checks; shared, reclaimable pages; for maps of 100k entries and more: docs/scale.md)"
+    )
 
     @field_validator("path")
     @classmethod

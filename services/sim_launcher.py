@@ -340,8 +340,9 @@ def _file_lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
-def _cached(map_path: Path, record: dict[str, Any]) -> AppearanceMap | None:
-    """The cached map if it is there, loads, and was built with ``record``; else None."""
+def _cached(map_path: Path, record: dict[str, Any], mmap: bool = False) -> AppearanceMap | None:
+    """The cached map if it is there, loads (memory-mapped with ``mmap``), and was built with
+    ``record``; else None."""
     if not map_path.is_file():
         return None
     side = sidecar_path(map_path)
@@ -354,7 +355,7 @@ def _cached(map_path: Path, record: dict[str, Any]) -> AppearanceMap | None:
         log.info("%s: built with other settings or another world version; rebuilding", map_path)
         return None
     try:
-        amap = AppearanceMap.load(map_path)
+        amap = AppearanceMap.load(map_path, mmap=mmap)
     except LinoLocError as exc:
         log.warning("cached map unusable (%s); rebuilding", exc)
         return None
@@ -374,7 +375,7 @@ def ensure_sim_map(
     survey's images and the PCA's work arrays never inflate its own resident memory)."""
     if in_subprocess and cfg.map.build is not None:
         world_fp = _world_fingerprint(cfg.map.build.world)
-        amap = _cached(Path(cfg.map.path), _build_record(cfg.map.build, world_fp))
+        amap = _cached(Path(cfg.map.path), _build_record(cfg.map.build, world_fp), cfg.map.mmap)
         if amap is not None:
             log.info("using the cached simulated map %s (%d map entries)", cfg.map.path, len(amap))
             return amap, False
@@ -385,7 +386,7 @@ def ensure_sim_map(
         ).returncode
         if code != 0:
             raise LinoLocError(f"building the simulated map {cfg.map.path} failed (status {code})")
-        return AppearanceMap.load(cfg.map.path), True
+        return AppearanceMap.load(cfg.map.path, mmap=cfg.map.mmap), True
     from drivers.sim.renderer import CameraModel
     from drivers.sim.survey import run_survey
     from drivers.sim.world import load_world
@@ -395,7 +396,7 @@ def ensure_sim_map(
     map_path = Path(cfg.map.path)
     build = cfg.map.build
     if build is None:
-        return AppearanceMap.load(map_path), False
+        return AppearanceMap.load(map_path, mmap=cfg.map.mmap), False
     world = load_world(build.world)
     record = _build_record(build, world.fingerprint)
     amap = _cached(map_path, record)

@@ -181,7 +181,7 @@ def run_daemon(args: argparse.Namespace) -> int:
             else:
                 from lino_loc.appearance_map import AppearanceMap
 
-                amap = AppearanceMap.load(cfg.map.path)
+                amap = AppearanceMap.load(cfg.map.path, mmap=cfg.map.mmap)
             truth = None
             if needs_sim(cfg):
                 sim = SimProcess(cfg_path, world=cfg.devices.camera.sim.world)
