@@ -55,6 +55,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from pydantic import BaseModel, ConfigDict, Field
 
+from lino_loc.poses import wrap_angle
+
 # Constants of the test (each chosen on the 240 s lab drive; docs/results.md, "Notes moved from
 # the code: filter"):
 CHANCE_HIT_RATE = 0.05  # rho_0: the hit rate of a wrong belief
@@ -168,7 +170,7 @@ def view_share(
     w = np.exp(lw[finite] - float(lw[finite].max()))
     c = np.asarray(camera_pose, dtype=np.float64).reshape(3)
     q = p[finite]
-    dth = np.abs((q[:, 2] - c[2] + math.pi) % (2.0 * math.pi) - math.pi)
+    dth = np.abs(wrap_angle(q[:, 2] - c[2]))
     near = (np.hypot(q[:, 0] - c[0], q[:, 1] - c[1]) <= CONFIRM_RADIUS_XY) & (
         dth <= CONFIRM_RADIUS_THETA
     )
