@@ -43,8 +43,9 @@ Usage::
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, Protocol, get_args
 
 import numpy as np
 import scipy.linalg
@@ -97,13 +98,47 @@ def _sign_fix(V: np.ndarray) -> np.ndarray:
     return V * signs[:, None]
 
 
+def randomized_svd(
+    a_mul: Callable[[np.ndarray], Any],
+    at_mul: Callable[[Any], np.ndarray],
+    dim: int,
+    d: int,
+    ell: int,
+    n_iter: int,
+    seed: int,
+    dtype: np.dtype | type = np.float32,
+    qr_tall: Callable[[Any], Any] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Top-d right singular vectors and values of a centred data matrix Xc (N, D) given only
+    its products (Halko, Martinsson & Tropp 2011, Alg. 4.4 + 5.1, the module docstring's
+    ``randomized``): ``a_mul(M) = Xc @ M`` for M (D, ell) and ``at_mul(Q) = Xc^T @ Q``
+    (a numpy (D, ell) array) for what ``qr_tall`` returns.
+
+    The test matrix is ``default_rng(seed).standard_normal((dim, ell))`` in ``dtype``, so
+    every way of computing the products (in memory, streamed from disk in row chunks,
+    :func:`fit_pca_streamed`; on Dask arrays, :mod:`lino_loc.pca_dask`) starts from the same
+    sketch and gives the same subspace up to rounding. ``qr_tall(Y)`` returns the Q factor
+    of the tall (N, ell) products (default numpy's QR; a Dask caller passes tsqr). Every
+    ``a_mul`` / ``at_mul`` is one pass over the data: ``2 n_iter + 2`` passes in all.
+    """
+    rng = np.random.default_rng(seed)
+    qr = qr_tall if qr_tall is not None else (lambda Y: np.linalg.qr(Y)[0])
+    omega = rng.standard_normal((dim, ell)).astype(dtype)
+    Q = qr(a_mul(omega))
+    for _ in range(n_iter):
+        Z, _ = np.linalg.qr(at_mul(Q))
+        Q = qr(a_mul(Z))
+    B = at_mul(Q).T  # (ell, D) = Q^T Xc
+    _, s, Vt = np.linalg.svd(B.astype(np.float64), full_matrices=False)
+    return Vt[:d], s[:d]
+
+
 def _randomized(
     X: np.ndarray, mean: np.ndarray, d: int, oversamples: int, n_iter: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Top-d right singular vectors and values of ``X - mean`` (Halko et al. 2011)."""
+    """Top-d right singular vectors and values of ``X - mean`` (Halko et al. 2011), X in memory."""
     n, D = X.shape
     ell = min(d + oversamples, n, D)
-    rng = np.random.default_rng(seed)
     dt = X.dtype
     m = mean.astype(dt)
 
@@ -117,14 +152,84 @@ def _randomized(
         out -= np.outer(m, Q.sum(axis=0))
         return out
 
-    omega = rng.standard_normal((D, ell)).astype(dt)
-    Q, _ = np.linalg.qr(a_mul(omega))
-    for _ in range(n_iter):
-        Z, _ = np.linalg.qr(at_mul(Q))
-        Q, _ = np.linalg.qr(a_mul(Z))
-    B = at_mul(Q).T  # (ell, D) = Q^T Xc
-    _, s, Vt = np.linalg.svd(B.astype(np.float64), full_matrices=False)
-    return Vt[:d], s[:d]
+    return randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, dt)
+
+
+class RowChunks(Protocol):
+    """A data matrix (N, D) read in chunks of rows (e.g. :class:`lino_loc.row_file.RowFile`)."""
+
+    @property
+    def shape(self) -> tuple[int, int]: ...
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(first_row, rows)`` for consecutive chunks covering all N rows in order."""
+        ...
+
+
+def fit_pca_streamed(
+    data: RowChunks,
+    n_components: int,
+    seed: int = 0,
+    *,
+    oversamples: int | None = None,
+    n_iter: int = DEFAULT_POWER_ITERATIONS,
+) -> PCA:
+    """:func:`fit_pca` ``method="randomized"`` on a float32 data matrix read in chunks of
+    rows, never all in memory: one pass for the mean, then the ``2 n_iter + 2`` passes of
+    :func:`randomized_svd`. Peak memory: one chunk, the (N, ell) range basis and the (D, ell)
+    products, ell = 2 d + 10 (the features the map keeps are N x d anyway). The same test
+    matrix, centring and QR as in memory: the same W up to float32 rounding in the sums
+    over chunks."""
+    n, D = data.shape
+    d = _checked_counts(n, D, n_components)
+    total = np.zeros(D, dtype=np.float64)
+    for _, rows in data.chunks():
+        if not np.all(np.isfinite(rows)):
+            raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
+        total += rows.sum(axis=0, dtype=np.float64)
+    mean = total / n
+    m = mean.astype(np.float32)
+    ell = min(d + (d + DEFAULT_OVERSAMPLES if oversamples is None else int(oversamples)), n, D)
+
+    def a_mul(M: np.ndarray) -> np.ndarray:
+        out = np.empty((n, M.shape[1]), dtype=np.float32)
+        for lo, rows in data.chunks():
+            out[lo : lo + len(rows)] = rows @ M
+        out -= m @ M
+        return out
+
+    def at_mul(Q: np.ndarray) -> np.ndarray:
+        out = np.zeros((D, Q.shape[1]), dtype=np.float32)
+        for lo, rows in data.chunks():
+            out += rows.T @ Q[lo : lo + len(rows)]
+        out -= np.outer(m, Q.sum(axis=0))
+        return out
+
+    V, s = randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, np.float32)
+    return finished_pca(V, s, mean, n)
+
+
+def finished_pca(V: np.ndarray, s: np.ndarray, mean: np.ndarray, n: int) -> PCA:
+    """The :class:`PCA` of right singular vectors V (d, D) and values s of the centred data of
+    n rows with ``mean``: signs fixed (:func:`_sign_fix`), explained variance ``s^2 / n``."""
+    V = _sign_fix(np.asarray(V, dtype=np.float64))
+    return PCA(
+        mean=np.asarray(mean).astype(np.float32),
+        components=np.ascontiguousarray(V, dtype=np.float32),
+        explained_variance=(np.asarray(s, dtype=np.float64) ** 2 / n).astype(np.float32),
+    )
+
+
+def _checked_counts(n: int, D: int, n_components: int) -> int:
+    """d = n_components; LinoLocError unless 1 <= d <= min(n - 1, D) and n >= 2."""
+    d = int(n_components)
+    if d < 1:
+        raise LinoLocError(f"fit_pca: n_components must be >= 1, got {d}")
+    if n < 2 or d > min(n - 1, D):
+        raise LinoLocError(
+            f"fit_pca: {d} components asked but {n} images of {D} pixels allow at most {max(min(n - 1, D), 0)}"
+        )
+    return d
 
 
 def _top_eigh(G: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -174,13 +279,7 @@ def fit_pca(
     if X.dtype != np.float64:
         X = X.astype(np.float32, copy=False)
     n, D = X.shape
-    d = int(n_components)
-    if d < 1:
-        raise LinoLocError(f"fit_pca: n_components must be >= 1, got {d}")
-    if n < 2 or d > min(n - 1, D):
-        raise LinoLocError(
-            f"fit_pca: {d} components asked but {n} images of {D} pixels allow at most {max(min(n - 1, D), 0)}"
-        )
+    d = _checked_counts(n, D, n_components)
     if not np.all(np.isfinite(X)):
         raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
     mean = X.mean(axis=0, dtype=np.float64)
@@ -195,12 +294,7 @@ def fit_pca(
         V, s = Vt[:d], s_all[:d]
     else:
         raise LinoLocError(f"fit_pca: unknown method {method!r} (choose from {', '.join(PCA_METHODS)})")
-    V = _sign_fix(np.asarray(V, dtype=np.float64))
-    return PCA(
-        mean=mean.astype(np.float32),
-        components=np.ascontiguousarray(V, dtype=np.float32),
-        explained_variance=(np.asarray(s, dtype=np.float64) ** 2 / n).astype(np.float32),
-    )
+    return finished_pca(V, s, mean, n)
 
 
 def principal_angles(A: np.ndarray, B: np.ndarray) -> np.ndarray:

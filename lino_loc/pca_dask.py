@@ -1,0 +1,167 @@
+"""The intensity channel of a map built on Dask arrays: loading, preprocessing, PCA, features.
+
+What ``lino-loc map build --engine dask`` runs. The survey's data matrix X (N images x D
+working-size pixels, float32) is a Dask array of row blocks, one task per block of
+``chunk_rows`` images (:func:`lino_loc.survey_vectors.vectors_of_files`: decode, preprocess,
+area-average, with virtual headings each image's turned views), persisted in the workers'
+memory. On it:
+
+- the mean, one reduction;
+- the PCA: the project's randomized SVD (:func:`lino_loc.pca.randomized_svd`, Halko,
+  Martinsson & Tropp 2011) with the same test matrix (drawn here from the same seed), the
+  same oversampling (ell = 2 d + 10 columns) and power iterations (5) and the same implicit
+  centring as the local build, the products ``Xc @ M`` and ``Xc^T @ Q`` as Dask matrix
+  products over the row blocks and the tall (N, ell) QR by Dask's TSQR (Benson, Gleich &
+  Demmel 2013): the (N, ell) basis stays on the workers, only (D, ell) products and the
+  small R factors come back. Not ``dask.array.linalg.svd_compressed``: its own random test
+  matrix and centring would give a different sketch, and the map must equal the local
+  build's (principal angles near zero, features equal up to sign);
+- the features ``(X - mean) W^T`` and the total variance, one pass.
+
+Each ``at_mul`` is one ``compute`` (a pass over the persisted blocks); 2 q + 2 = 12 passes for
+the default q = 5, plus the mean and the projection.
+
+The computations run on the current Dask scheduler: a ``distributed.Client`` set up by the
+caller (``services.dask_cluster``; lino_loc sets up no cluster and opens no connection), or
+Dask's local threads without one. Workers must see the dataset's files at the same paths
+(one machine, or a shared file system) and have lino-loc installed.
+
+The disparity channel (EM-PCA with missing data, :mod:`lino_loc.pca_missing`) is not built
+here: its EM runs tens of iterations (SQUAREM steps with objective checks) whose every
+step needs the whole N x D masked data for a global per-pixel M-step, i.e. a cluster round
+trip and a reduction of D x (d+1)(d+2)/2 tables per step, and the fit keeps its dense float
+data in one process anyway; it runs in the calling process as in the local build.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from lino_loc.dataset import Dataset
+from lino_loc.errors import LinoLocError
+from lino_loc.pca import (
+    DEFAULT_OVERSAMPLES,
+    DEFAULT_POWER_ITERATIONS,
+    PCA,
+    finished_pca,
+    randomized_svd,
+)
+from lino_loc.preprocessing import Preprocess
+from lino_loc.survey_vectors import vectors_of_files
+from lino_loc.virtual_views import VirtualHeadings, augment_vectors
+
+#: Images per Dask task by default (1024 images of 80 x 60: a 19 MiB block).
+DEFAULT_CHUNK_ROWS = 1024
+CLUSTER_EXTRA_HINT = "pip install lino-loc[cluster]"
+
+
+def dask_array_module() -> Any:
+    """``dask.array``, or a one-line LinoLocError naming the extra to install."""
+    try:
+        import dask.array as da
+    except ImportError:
+        raise LinoLocError(f"the dask engine needs Dask: {CLUSTER_EXTRA_HINT}") from None
+    return da
+
+
+def _block(paths: Sequence[str], method: Preprocess, size: tuple[int, int], camera_size: tuple[int, int],
+           virtual: VirtualHeadings | None) -> np.ndarray:
+    """One task: the vectors (rows image-major with ``virtual``) of the image files ``paths``."""
+    X = vectors_of_files(paths, method, size, camera_size)
+    if virtual is not None:
+        X = augment_vectors(X, size, virtual.K, virtual.offsets, virtual.margin)
+    return X
+
+
+def survey_array(
+    dataset: Dataset,
+    preprocess: Preprocess,
+    size: tuple[int, int],
+    *,
+    virtual: VirtualHeadings | None = None,
+    chunk_rows: int | None = None,
+) -> Any:
+    """The dataset's data matrix as a lazy Dask array (N*V, D') of row blocks, one task per
+    ``chunk_rows`` images, a single block of columns (what TSQR needs)."""
+    da = dask_array_module()
+    import dask
+
+    w, h = int(size[0]), int(size[1])
+    cam = dataset.meta.camera
+    n = len(dataset)
+    step = int(chunk_rows or DEFAULT_CHUNK_ROWS)
+    if step < 1:
+        raise LinoLocError(f"map build: chunk_rows must be >= 1, got {step}")
+    v = 1 if virtual is None else len(virtual.offsets)
+    dim = w * h if virtual is None else (w - 2 * virtual.margin) * h
+    paths = [str(dataset.image_path(i)) for i in range(n)]
+    load = dask.delayed(_block, pure=True)
+    blocks = [
+        da.from_delayed(load(paths[lo : lo + step], preprocess, (w, h), (cam.width, cam.height), virtual),
+                        shape=(v * len(paths[lo : lo + step]), dim), dtype=np.float32)
+        for lo in range(0, n, step)
+    ]
+    return da.concatenate(blocks, axis=0)
+
+
+def fit_pca_dask(X: Any, n_components: int, seed: int = 0, *, n_iter: int = DEFAULT_POWER_ITERATIONS) -> PCA:
+    """:func:`lino_loc.pca.fit_pca` ``method="randomized"`` of the rows of a Dask array X
+    (N, D) float32 with one block of columns (persist it first: every pass reads it)."""
+    da = dask_array_module()
+    import dask
+
+    n, D = (int(v) for v in X.shape)
+    d = int(n_components)
+    if d < 1 or n < 2 or d > min(n - 1, D):
+        raise LinoLocError(f"fit_pca: {d} components asked but {n} images of {D} pixels allow at most "
+                           f"{max(min(n - 1, D), 0)}")
+    mean, finite = dask.compute(X.mean(axis=0, dtype=np.float64), da.isfinite(X).all())
+    if not finite:
+        raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
+    m = np.asarray(mean).astype(np.float32)
+    ell = min(2 * d + DEFAULT_OVERSAMPLES, n, D)
+
+    def a_mul(M: np.ndarray) -> Any:  # Xc @ M, lazy (N, ell)
+        return X @ M - (m @ M)
+
+    def tall_q(Y: Any) -> Any:
+        return da.linalg.tsqr(Y)[0]
+
+    def at_mul(Q: Any) -> np.ndarray:  # Xc^T @ Q, computed (D, ell)
+        prod, colsum = dask.compute(X.T @ Q, Q.sum(axis=0))
+        return np.asarray(prod, dtype=np.float32) - np.outer(m, colsum).astype(np.float32)
+
+    V, s = randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, np.float32, qr_tall=tall_q)
+    return finished_pca(V, s, mean, n)
+
+
+def project_dask(pca: PCA, X: Any) -> tuple[np.ndarray, float]:
+    """Features (N, d) of every row of the Dask array X (eq. 1) and the total variance
+    sum_j var(x_j), in one pass (as :func:`lino_loc.appearance_map.project_rows`)."""
+    import dask
+
+    Xc = X - pca.mean
+    Y, ss = dask.compute(Xc @ pca.components.T, (Xc.astype(np.float64) ** 2).sum())
+    return np.asarray(Y, dtype=np.float32), float(ss) / int(X.shape[0])
+
+
+def intensity_pca_dask(
+    dataset: Dataset,
+    n_features: int,
+    preprocess: Preprocess,
+    size: tuple[int, int],
+    *,
+    seed: int = 0,
+    virtual: VirtualHeadings | None = None,
+    chunk_rows: int | None = None,
+) -> tuple[PCA, np.ndarray, float]:
+    """The intensity channel's PCA, features (N*V, d) and total variance, as Dask tasks on the
+    current scheduler: what :func:`lino_loc.appearance_map.build_intensity_channel` computes
+    with ``method="randomized"``, up to float32 rounding."""
+    X = survey_array(dataset, preprocess, size, virtual=virtual, chunk_rows=chunk_rows).persist()
+    pca = fit_pca_dask(X, n_features, seed=seed)
+    Y, total = project_dask(pca, X)
+    return pca, Y, total
