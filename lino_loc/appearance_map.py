@@ -61,6 +61,7 @@ import logging
 import math
 import os
 import tempfile
+import time
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -814,6 +815,11 @@ def intensity_channel_from_vectors(
 #: (peak memory and the cost of streaming: docs/scale.md).
 DEFAULT_MEMORY_BUDGET_MB = 1024.0
 
+def _phase(name: str, seconds: float) -> None:
+    """Log how long a phase of the local build took (``extra``: ``phase``, ``seconds``)."""
+    log.info("map build: %s %.2f s", name, seconds, extra={"phase": name, "seconds": seconds})
+
+
 Engine = Literal["local", "dask"]
 ENGINES: tuple[str, ...] = ("local", "dask")
 
@@ -850,10 +856,15 @@ def build_intensity_channel(
     and the projection; the same map up to float32 rounding. Only ``randomized`` streams:
     ``gram`` and ``svd`` over the budget are a LinoLocError."""
     mb = data_matrix_mb(len(dataset), size, virtual)
+    t0 = time.perf_counter()
     if mb <= memory_budget_mb:
         X = load_vectors(dataset, preprocess, size, workers=workers, progress=progress)
-        return intensity_channel_from_vectors(X, preprocess, size, n_features, virtual=virtual, method=method,
-                                              seed=seed)
+        t1 = time.perf_counter()
+        _phase("load", t1 - t0)
+        ch = intensity_channel_from_vectors(X, preprocess, size, n_features, virtual=virtual, method=method,
+                                            seed=seed)
+        _phase("pca+features", time.perf_counter() - t1)
+        return ch
     if method != "randomized":
         raise LinoLocError(f"{dataset.root}: PCA method {method!r} needs the whole data matrix in memory "
                            f"({mb:.0f} MiB, over the memory budget of {memory_budget_mb:.0f} MiB): use "
@@ -862,8 +873,13 @@ def build_intensity_channel(
              mb, memory_budget_mb, scratch_dir or tempfile.gettempdir())
     with load_vectors_to_file(dataset, preprocess, size, scratch_dir, virtual=virtual, workers=workers,
                               progress=progress, chunk_rows=chunk_rows) as rows:
+        t1 = time.perf_counter()
+        _phase("load", t1 - t0)
         pca = fit_pca_streamed(rows, n_features, seed=seed)
+        t2 = time.perf_counter()
+        _phase("pca", t2 - t1)
         Y, total = _project_rows(pca, rows)
+        _phase("features", time.perf_counter() - t2)
     return ChannelMap(
         name="intensity",
         preprocess=preprocess,

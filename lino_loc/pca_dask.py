@@ -35,6 +35,8 @@ data in one process anyway; it runs in the calling process as in the local build
 
 from __future__ import annotations
 
+import logging
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -50,11 +52,22 @@ from lino_loc.pca import (
     randomized_svd,
 )
 from lino_loc.preprocessing import Preprocess
+from lino_loc.row_file import DEFAULT_CHUNK_BYTES
 from lino_loc.survey_vectors import vectors_of_files
 from lino_loc.virtual_views import VirtualHeadings, augment_vectors
 
-#: Images per Dask task by default (1024 images of 80 x 60: a 19 MiB block).
-DEFAULT_CHUNK_ROWS = 1024
+log = logging.getLogger(__name__)
+
+
+def _phase(name: str, seconds: float) -> None:
+    """Log how long a phase of the build took (``extra``: ``phase``, ``seconds``)."""
+    log.info("dask map build: %s %.2f s", name, seconds, extra={"phase": name, "seconds": seconds})
+
+
+#: Bytes of rows per Dask block by default, as the streamed local build's chunks (64 MiB:
+#: 3495 images of 80 x 60): large enough that the scheduler's per-task overhead is small
+#: against the block's products, small enough to balance the loading over the workers.
+DEFAULT_BLOCK_BYTES = DEFAULT_CHUNK_BYTES
 CLUSTER_EXTRA_HINT = "pip install lino-loc[cluster]"
 
 
@@ -85,18 +98,19 @@ def survey_array(
     chunk_rows: int | None = None,
 ) -> Any:
     """The dataset's data matrix as a lazy Dask array (N*V, D') of row blocks, one task per
-    ``chunk_rows`` images, a single block of columns (what TSQR needs)."""
+    ``chunk_rows`` images (default: :data:`DEFAULT_BLOCK_BYTES` of rows), a single block of
+    columns (what TSQR needs)."""
     da = dask_array_module()
     import dask
 
     w, h = int(size[0]), int(size[1])
     cam = dataset.meta.camera
     n = len(dataset)
-    step = int(chunk_rows or DEFAULT_CHUNK_ROWS)
-    if step < 1:
-        raise LinoLocError(f"map build: chunk_rows must be >= 1, got {step}")
     v = 1 if virtual is None else len(virtual.offsets)
     dim = w * h if virtual is None else (w - 2 * virtual.margin) * h
+    step = int(chunk_rows) if chunk_rows else max(1, DEFAULT_BLOCK_BYTES // (4 * dim * v))
+    if step < 1:
+        raise LinoLocError(f"map build: chunk_rows must be >= 1, got {step}")
     paths = [str(dataset.image_path(i)) for i in range(n)]
     load = dask.delayed(_block, pure=True)
     blocks = [
@@ -113,6 +127,7 @@ def fit_pca_dask(X: Any, n_components: int, seed: int = 0, *, n_iter: int = DEFA
     da = dask_array_module()
     import dask
 
+    t0 = time.perf_counter()
     n, D = (int(v) for v in X.shape)
     d = int(n_components)
     if d < 1 or n < 2 or d > min(n - 1, D):
@@ -123,6 +138,8 @@ def fit_pca_dask(X: Any, n_components: int, seed: int = 0, *, n_iter: int = DEFA
         raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
     m = np.asarray(mean).astype(np.float32)
     ell = min(2 * d + DEFAULT_OVERSAMPLES, n, D)
+    t1 = time.perf_counter()
+    _phase("mean", t1 - t0)  # the first pass: with a freshly persisted X, the loading too
 
     def a_mul(M: np.ndarray) -> Any:  # Xc @ M, lazy (N, ell)
         return X @ M - (m @ M)
@@ -135,6 +152,7 @@ def fit_pca_dask(X: Any, n_components: int, seed: int = 0, *, n_iter: int = DEFA
         return np.asarray(prod, dtype=np.float32) - np.outer(m, colsum).astype(np.float32)
 
     V, s = randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, np.float32, qr_tall=tall_q)
+    _phase("svd", time.perf_counter() - t1)
     return finished_pca(V, s, mean, n)
 
 
@@ -143,8 +161,10 @@ def project_dask(pca: PCA, X: Any) -> tuple[np.ndarray, float]:
     sum_j var(x_j), in one pass (as :func:`lino_loc.appearance_map.project_rows`)."""
     import dask
 
+    t0 = time.perf_counter()
     Xc = X - pca.mean
     Y, ss = dask.compute(Xc @ pca.components.T, (Xc.astype(np.float64) ** 2).sum())
+    _phase("features", time.perf_counter() - t0)
     return np.asarray(Y, dtype=np.float32), float(ss) / int(X.shape[0])
 
 

@@ -89,14 +89,6 @@ def test_dask_build_equals_local(survey: Dataset, local_map: AppearanceMap, clus
     _assert_same_map(local_map, dask_map)
 
 
-def test_dask_build_with_virtual_headings(survey: Dataset, cluster: object) -> None:
-    virt = offsets(np.radians(3.0), 3)
-    ref = build_map(survey, FEATURES, "gradient", SIZE, virtual_offsets=virt, workers=1)
-    got = build_map(survey, FEATURES, "gradient", SIZE, virtual_offsets=virt, engine="dask", chunk_rows=150)
-    assert len(got) == 3 * N_IMAGES
-    _assert_same_map(ref, got)
-
-
 def test_streamed_build_equals_in_memory(survey: Dataset, local_map: AppearanceMap, tmp_path: Path) -> None:
     # 300 x 1200 float32 = 1.4 MiB over a 0.5 MiB budget: streamed in chunks of 37 rows (the
     # last one short) from a scratch file, which is deleted afterwards
@@ -140,7 +132,7 @@ def test_unreachable_scheduler_is_one_line() -> None:
     assert address in str(exc.value) and "\n" not in str(exc.value)
 
 
-def test_cli_dask_build_and_missing_extra(survey: Dataset, local_map: AppearanceMap, cluster: object, tmp_path: Path,
+def test_cli_dask_build_and_missing_extra(survey: Dataset, cluster: object, tmp_path: Path,
                                           monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.setattr(cli, "COMMAND_MODULES", ("services.commands.map",))
     out = tmp_path / "m.npz"
@@ -148,10 +140,14 @@ def test_cli_dask_build_and_missing_extra(survey: Dataset, local_map: Appearance
     address = cluster.scheduler.address  # type: ignore[attr-defined]
     assert cli.main([*argv, "--scheduler", address]) == 2
     assert "--scheduler needs --engine dask" in capsys.readouterr().err
-    # an existing cluster (the fixture's LocalCluster, by its address)
-    assert cli.main([*argv, "--engine", "dask", "--scheduler", address, "--chunk-rows", "150"]) == 0, \
-        capsys.readouterr().err
-    _assert_same_map(local_map, AppearanceMap.load(out))
+    # an existing cluster (the fixture's LocalCluster, by its address), with virtual headings
+    # (every image's 3 turned views: 900 rows in blocks of 3 x 150)
+    assert cli.main([*argv, "--engine", "dask", "--scheduler", address, "--chunk-rows", "150",
+                     "--virtual-headings", "3", "--preprocess", "gradient"]) == 0, capsys.readouterr().err
+    ref = build_map(survey, FEATURES, "gradient", SIZE, virtual_offsets=offsets(np.radians(3.0), 3), workers=1)
+    got = AppearanceMap.load(out)
+    assert len(got) == 3 * N_IMAGES
+    _assert_same_map(ref, got)
     monkeypatch.setitem(sys.modules, "distributed", None)  # the extra not installed
     capsys.readouterr()
     assert cli.main([*argv, "--engine", "dask"]) == 2

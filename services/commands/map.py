@@ -256,7 +256,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=_positive_int, default=2, metavar="N",
                    help="with --engine dask and no --scheduler: the LocalCluster's worker processes (default %(default)s)")
     p.add_argument("--chunk-rows", type=_positive_int, default=None, metavar="N",
-                   help="images per Dask task, or rows per chunk when the local build streams (default 1024 / 64 MiB)")
+                   help="images per Dask task, or rows per chunk when the local build streams (default: 64 MiB of rows)")
     p.add_argument("--memory-budget", type=float, default=DEFAULT_MEMORY_BUDGET_MB, metavar="MB",
                    help="local engine: a larger data matrix (images x pixels float32, MiB) is streamed from a "
                    "scratch file in chunks (default %(default)g)")
