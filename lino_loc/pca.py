@@ -133,6 +133,72 @@ def randomized_svd(
     return Vt[:d], s[:d]
 
 
+class IllConditioned(ArithmeticError):
+    """A fused pass's Gram matrix was too ill-conditioned for Cholesky QR (the caller falls back
+    to :func:`randomized_svd`'s separate passes)."""
+
+
+#: Largest condition number of the range sketch ``Y`` for which :func:`randomized_svd_fused`
+#: orthonormalises it by Cholesky QR: in float64 the basis then loses at most about
+#: ``cond(Y)^2 * 1e-16 = 1e-6`` of orthogonality, float32's own rounding.
+MAX_CHOLESKY_COND = 1.0e5
+
+
+def block_products(rows: np.ndarray, mean32: np.ndarray, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One block of rows' share of a fused pass: with ``Y_b = (rows - mean) @ Z`` (the mean
+    subtracted implicitly, as ``rows @ Z - mean @ Z``), the sums ``rows^T Y_b`` (D, k),
+    ``Y_b^T Y_b`` and ``1^T Y_b`` (float32 products, float64 results) that
+    :func:`centred_products` turns into ``(Xc^T Y, Y^T Y)`` once summed over the blocks."""
+    Yb = rows @ Z
+    Yb -= mean32 @ Z
+    return (rows.T @ Yb).astype(np.float64), Yb.T.astype(np.float64) @ Yb.astype(np.float64), Yb.sum(axis=0, dtype=np.float64)
+
+
+def centred_products(sums: tuple[np.ndarray, np.ndarray, np.ndarray], mean32: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Xc^T Y, Y^T Y)`` from the summed :func:`block_products` (``Y = Xc Z`` is centred by
+    construction; ``Xc^T Y = X^T Y - mean 1^T Y``)."""
+    XtY, G, colsum = sums
+    return XtY - np.outer(mean32.astype(np.float64), colsum), G
+
+
+def randomized_svd_fused(
+    fused_pass: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    dim: int,
+    d: int,
+    ell: int,
+    n_iter: int,
+    seed: int,
+    dtype: np.dtype | type = np.float32,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`randomized_svd` with one pass over the data per power iteration instead of two.
+
+    ``fused_pass(Z)`` returns ``(Xc^T Y, Y^T Y)`` for ``Y = Xc Z`` (float64), which every block
+    of rows gives on its own (:func:`block_products`): Y is orthonormalised by Cholesky QR,
+    ``Q = Y R^-1`` with ``R^T R = Y^T Y`` (the Q of Householder QR up to column signs), so
+    ``Xc^T Q = (Xc^T Y) R^-1`` needs no second pass. ``n_iter + 1`` passes; the same test
+    matrix and the same subspace as :func:`randomized_svd` up to rounding. Raises
+    :class:`IllConditioned` when ``cond(Y)`` exceeds :data:`MAX_CHOLESKY_COND` (or Y is rank
+    deficient): then the caller uses :func:`randomized_svd`.
+    """
+    rng = np.random.default_rng(seed)
+    Z = rng.standard_normal((dim, ell)).astype(dtype)
+    P = np.empty((dim, ell))
+    for it in range(n_iter + 1):
+        XtY, G = fused_pass(Z)
+        try:
+            R = np.linalg.cholesky(G).T  # upper, positive diagonal
+        except np.linalg.LinAlgError:
+            raise IllConditioned("range sketch is rank deficient") from None
+        lam = np.linalg.eigvalsh(G)  # cond(Y)^2 = lam_max / lam_min
+        if not lam[0] > 0 or lam[-1] / lam[0] > MAX_CHOLESKY_COND**2:
+            raise IllConditioned(f"range sketch condition {np.sqrt(lam[-1] / max(lam[0], 1e-300)):.3g}")
+        P = scipy.linalg.solve_triangular(R, XtY.T, trans="T", lower=False).T  # Xc^T Q = XtY R^-1
+        if it < n_iter:
+            Z = np.linalg.qr(P.astype(dtype))[0]
+    _, s, Vt = np.linalg.svd(P.T, full_matrices=False)
+    return Vt[:d], s[:d]
+
+
 def _randomized(
     X: np.ndarray, mean: np.ndarray, d: int, oversamples: int, n_iter: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -175,11 +241,12 @@ def fit_pca_streamed(
     n_iter: int = DEFAULT_POWER_ITERATIONS,
 ) -> PCA:
     """:func:`fit_pca` ``method="randomized"`` on a float32 data matrix read in chunks of
-    rows, never all in memory: one pass for the mean, then the ``2 n_iter + 2`` passes of
-    :func:`randomized_svd`. Peak memory: one chunk, the (N, ell) range basis and the (D, ell)
-    products, ell = 2 d + 10 (the features the map keeps are N x d anyway). The same test
-    matrix, centring and QR as in memory: the same W up to float32 rounding in the sums
-    over chunks."""
+    rows, never all in memory: one pass for the mean, then the ``n_iter + 1`` fused passes of
+    :func:`randomized_svd_fused` (each chunk's products on their own, summed), or, should the
+    sketch be too ill-conditioned for Cholesky QR, the ``2 n_iter + 2`` passes of
+    :func:`randomized_svd` with the (N, ell) basis in memory. Peak memory: one chunk and a few
+    (D, ell) products, ell = 2 d + 10. The same test matrix, oversampling, power iterations and
+    implicit centring as in memory: the same W up to rounding."""
     n, D = data.shape
     d = _checked_counts(n, D, n_components)
     total = np.zeros(D, dtype=np.float64)
@@ -190,6 +257,19 @@ def fit_pca_streamed(
     mean = total / n
     m = mean.astype(np.float32)
     ell = min(d + (d + DEFAULT_OVERSAMPLES if oversamples is None else int(oversamples)), n, D)
+
+    def fused_pass(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sums = None
+        for _, rows in data.chunks():
+            part = block_products(rows, m, Z)
+            sums = part if sums is None else tuple(a + b for a, b in zip(sums, part, strict=True))
+        return centred_products(sums, m)  # type: ignore[arg-type]
+
+    try:
+        V, s = randomized_svd_fused(fused_pass, D, d, ell, n_iter, seed, np.float32)
+        return finished_pca(V, s, mean, n)
+    except IllConditioned:
+        pass
 
     def a_mul(M: np.ndarray) -> np.ndarray:
         out = np.empty((n, M.shape[1]), dtype=np.float32)

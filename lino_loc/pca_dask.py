@@ -7,19 +7,20 @@ area-average, with virtual headings each image's turned views), persisted in the
 memory. On it:
 
 - the mean, one reduction;
-- the PCA: the project's randomized SVD (:func:`lino_loc.pca.randomized_svd`, Halko,
-  Martinsson & Tropp 2011) with the same test matrix (drawn here from the same seed), the
-  same oversampling (ell = 2 d + 10 columns) and power iterations (5) and the same implicit
-  centring as the local build, the products ``Xc @ M`` and ``Xc^T @ Q`` as Dask matrix
-  products over the row blocks and the tall (N, ell) QR by Dask's TSQR (Benson, Gleich &
-  Demmel 2013): the (N, ell) basis stays on the workers, only (D, ell) products and the
-  small R factors come back. Not ``dask.array.linalg.svd_compressed``: its own random test
-  matrix and centring would give a different sketch, and the map must equal the local
-  build's (principal angles near zero, features equal up to sign);
+- the PCA: the project's randomized SVD (Halko, Martinsson & Tropp 2011) with the same test
+  matrix (drawn here from the same seed), the same oversampling (ell = 2 d + 10 columns) and
+  power iterations (q = 5) and the same implicit centring as the local build. Each power
+  iteration is one fused pass (:func:`lino_loc.pca.randomized_svd_fused`): every block
+  computes ``X_b^T Y_b``, ``Y_b^T Y_b`` and ``1^T Y_b`` for ``Y_b = (X_b - mean) Z`` on the
+  worker that holds it, a tree of sums on the workers reduces them, and only the (D, ell)
+  and (ell, ell) sums reach the client, which orthonormalises by Cholesky QR in float64.
+  q + 1 = 6 passes, one ``compute`` each; no block of X ever moves. Should the sketch be too
+  ill-conditioned for Cholesky QR, the 2 q + 2 passes of :func:`lino_loc.pca.randomized_svd`
+  with Dask matrix products and Dask's TSQR (Benson, Gleich & Demmel 2013) for the tall
+  (N, ell) QR. Not ``dask.array.linalg.svd_compressed``: its own random test matrix and no
+  centring would give a different sketch, and the map must equal the local build's
+  (principal angles near zero, features equal up to sign);
 - the features ``(X - mean) W^T`` and the total variance, one pass.
-
-Each ``at_mul`` is one ``compute`` (a pass over the persisted blocks); 2 q + 2 = 12 passes for
-the default q = 5, plus the mean and the projection.
 
 The computations run on the current Dask scheduler: a ``distributed.Client`` set up by the
 caller (``services.dask_cluster``; lino_loc sets up no cluster and opens no connection), or
@@ -48,8 +49,12 @@ from lino_loc.pca import (
     DEFAULT_OVERSAMPLES,
     DEFAULT_POWER_ITERATIONS,
     PCA,
+    IllConditioned,
+    block_products,
+    centred_products,
     finished_pca,
     randomized_svd,
+    randomized_svd_fused,
 )
 from lino_loc.preprocessing import Preprocess
 from lino_loc.row_file import DEFAULT_CHUNK_BYTES
@@ -141,6 +146,24 @@ def fit_pca_dask(X: Any, n_components: int, seed: int = 0, *, n_iter: int = DEFA
     t1 = time.perf_counter()
     _phase("mean", t1 - t0)  # the first pass: with a freshly persisted X, the loading too
 
+    blocks = list(X.to_delayed().ravel())
+
+    def fused_pass(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        z, mm = dask.delayed(Z, pure=True), dask.delayed(m, pure=True)  # one graph key each, sent once
+        parts = [dask.delayed(block_products, pure=True)(b, mm, z) for b in blocks]
+        while len(parts) > 1:  # pairwise tree sum on the workers: only (D, ell) arrays move
+            parts = [dask.delayed(_sum3, pure=True)(*parts[i : i + 2]) if i + 1 < len(parts) else parts[i]
+                     for i in range(0, len(parts), 2)]
+        (sums,) = dask.compute(parts[0])
+        return centred_products(sums, m)
+
+    try:
+        V, s = randomized_svd_fused(fused_pass, D, d, ell, n_iter, seed, np.float32)
+        _phase("svd", time.perf_counter() - t1)
+        return finished_pca(V, s, mean, n)
+    except IllConditioned:
+        log.info("dask map build: range sketch ill-conditioned for Cholesky QR, using TSQR passes")
+
     def a_mul(M: np.ndarray) -> Any:  # Xc @ M, lazy (N, ell)
         return X @ M - (m @ M)
 
@@ -154,6 +177,10 @@ def fit_pca_dask(X: Any, n_components: int, seed: int = 0, *, n_iter: int = DEFA
     V, s = randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, np.float32, qr_tall=tall_q)
     _phase("svd", time.perf_counter() - t1)
     return finished_pca(V, s, mean, n)
+
+
+def _sum3(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    return tuple(x + y for x, y in zip(a, b, strict=True))
 
 
 def project_dask(pca: PCA, X: Any) -> tuple[np.ndarray, float]:

@@ -153,3 +153,37 @@ def test_cli_dask_build_and_missing_extra(survey: Dataset, cluster: object, tmp_
     assert cli.main([*argv, "--engine", "dask"]) == 2
     err = capsys.readouterr().err.strip()
     assert "pip install lino-loc[cluster]" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("rank", [None, 5])
+def test_streamed_and_dask_pca_equal_in_memory(rank: int | None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fused one-pass-per-iteration PCA (Cholesky QR) on a well-conditioned sketch, and on
+    a rank-5 matrix (sketch of 16 columns rank deficient) the fallback to the two-pass
+    randomized SVD: both equal the in-memory fit_pca."""
+    import dask
+    import dask.array as da
+
+    import lino_loc.pca as pca_mod
+    from lino_loc.pca_dask import fit_pca_dask
+
+    rng = np.random.default_rng(7)
+    n, dim, d = 400, 300, 3
+    scales = 0.8 ** np.arange(rank or 40)
+    X = (rng.standard_normal((n, len(scales))) * scales) @ np.linalg.qr(rng.standard_normal((dim, len(scales))))[0].T
+    X = (X + 0.5).astype(np.float32)
+    ref = pca_mod.fit_pca(X, d)
+    calls: list[int] = []
+    two_pass = pca_mod.randomized_svd
+    monkeypatch.setattr(pca_mod, "randomized_svd", lambda *a, **k: calls.append(1) or two_pass(*a, **k))
+    with RowFile(n, dim, tmp_path, chunk_rows=64) as rows:
+        rows.write(0, X)
+        streamed = pca_mod.fit_pca_streamed(rows, d)
+    assert len(calls) == (1 if rank else 0)  # the fallback ran only for the rank-deficient sketch
+    monkeypatch.setattr("lino_loc.pca_dask.randomized_svd", pca_mod.randomized_svd)
+    with dask.config.set(scheduler="synchronous"):  # the algorithm, not the cluster (tested above)
+        on_dask = fit_pca_dask(da.from_array(X, chunks=(64, dim)), d)
+    assert len(calls) == (2 if rank else 0)
+    for got in (streamed, on_dask):
+        assert principal_angles(ref.components, got.components).max() < 1e-3
+        np.testing.assert_allclose(got.explained_variance, ref.explained_variance, rtol=1e-4)
+        np.testing.assert_allclose(np.abs(got.components @ ref.components.T), np.eye(d), atol=1e-3)
