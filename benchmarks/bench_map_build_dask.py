@@ -101,6 +101,11 @@ def make_survey(out: Path, views: int, base_views: int, world_name: str, seed: i
 
 
 # ----------------------------------------------------------------------- child
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 class _Phases(logging.Handler):
     def __init__(self) -> None:
         super().__init__(logging.INFO)
@@ -136,12 +141,15 @@ def child(engine: str, root: str, out: str, features: int, workers: int, memory_
             amap = build_map(ds, **kwargs)  # type: ignore[arg-type]
             t3 = time.perf_counter()
             result["workers"] = len(client.nthreads())
+            result["worker_cpu_s"] = sorted(round(v, 2) for v in client.run(_cpu_s).values())
+            result["nanny_cpu_s"] = sorted(round(v, 2) for v in client.run(_cpu_s, nanny=True).values())
         result["cluster_close_s"] = round(time.perf_counter() - t3, 3)
     else:
         t2 = time.perf_counter()
         amap = build_map(ds, **kwargs)  # type: ignore[arg-type]
         t3 = time.perf_counter()
     result["build_s"] = round(t3 - t2, 3)
+    result["client_cpu_s"] = round(_cpu_s(), 2)  # with dask: the client and the LocalCluster's scheduler
     t4 = time.perf_counter()
     path = amap.save(out)
     result["save_s"] = round(time.perf_counter() - t4, 3)

@@ -37,6 +37,7 @@ data in one process anyway; it runs in the calling process as in the local build
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -57,7 +58,6 @@ from lino_loc.pca import (
     randomized_svd_fused,
 )
 from lino_loc.preprocessing import Preprocess
-from lino_loc.row_file import DEFAULT_CHUNK_BYTES
 from lino_loc.survey_vectors import vectors_of_files
 from lino_loc.virtual_views import VirtualHeadings, augment_vectors
 
@@ -69,10 +69,13 @@ def _phase(name: str, seconds: float) -> None:
     log.info("dask map build: %s %.2f s", name, seconds, extra={"phase": name, "seconds": seconds})
 
 
-#: Bytes of rows per Dask block by default, as the streamed local build's chunks (64 MiB:
-#: 3495 images of 80 x 60): large enough that the scheduler's per-task overhead is small
-#: against the block's products, small enough to balance the loading over the workers.
-DEFAULT_BLOCK_BYTES = DEFAULT_CHUNK_BYTES
+#: Most bytes of rows per Dask block by default (16 MiB: 873 images of 80 x 60), and the
+#: fewest rows per block and the number of blocks aimed at below that size: large enough that
+#: the scheduler's per-task overhead is small against the block's work, small enough that the
+#: loading spreads over the workers (a 100 000-view survey gives 115 blocks, 20 000 views 32).
+DEFAULT_BLOCK_BYTES = 16 * 2**20
+MIN_BLOCK_ROWS = 256
+TARGET_BLOCKS = 32
 CLUSTER_EXTRA_HINT = "pip install lino-loc[cluster]"
 
 
@@ -94,6 +97,13 @@ def _block(paths: Sequence[str], method: Preprocess, size: tuple[int, int], came
     return X
 
 
+def _block_images(n: int, v: int, dim: int) -> int:
+    """Images per block by default: ``TARGET_BLOCKS`` blocks of at least ``MIN_BLOCK_ROWS``
+    rows, at most ``DEFAULT_BLOCK_BYTES`` each (rows = images x ``v`` views of ``dim`` floats)."""
+    most = max(1, DEFAULT_BLOCK_BYTES // (4 * dim * v))
+    return max(1, min(most, max(math.ceil(MIN_BLOCK_ROWS / v), math.ceil(n / TARGET_BLOCKS))))
+
+
 def survey_array(
     dataset: Dataset,
     preprocess: Preprocess,
@@ -103,7 +113,7 @@ def survey_array(
     chunk_rows: int | None = None,
 ) -> Any:
     """The dataset's data matrix as a lazy Dask array (N*V, D') of row blocks, one task per
-    ``chunk_rows`` images (default: :data:`DEFAULT_BLOCK_BYTES` of rows), a single block of
+    ``chunk_rows`` images (default :func:`_block_images`), a single block of
     columns (what TSQR needs)."""
     da = dask_array_module()
     import dask
@@ -113,7 +123,7 @@ def survey_array(
     n = len(dataset)
     v = 1 if virtual is None else len(virtual.offsets)
     dim = w * h if virtual is None else (w - 2 * virtual.margin) * h
-    step = int(chunk_rows) if chunk_rows else max(1, DEFAULT_BLOCK_BYTES // (4 * dim * v))
+    step = int(chunk_rows) if chunk_rows else _block_images(n, v, dim)
     if step < 1:
         raise LinoLocError(f"map build: chunk_rows must be >= 1, got {step}")
     paths = [str(dataset.image_path(i)) for i in range(n)]
@@ -189,10 +199,17 @@ def project_dask(pca: PCA, X: Any) -> tuple[np.ndarray, float]:
     import dask
 
     t0 = time.perf_counter()
-    Xc = X - pca.mean
-    Y, ss = dask.compute(Xc @ pca.components.T, (Xc.astype(np.float64) ** 2).sum())
+    mean, W = dask.delayed(pca.mean, pure=True), dask.delayed(pca.components, pure=True)
+    parts = dask.compute(*[dask.delayed(_project_block, pure=True)(b, mean, W) for b in X.to_delayed().ravel()])
+    Y = np.concatenate([y for y, _ in parts]) if parts else np.empty((0, pca.n_components), np.float32)
     _phase("features", time.perf_counter() - t0)
-    return np.asarray(Y, dtype=np.float32), float(ss) / int(X.shape[0])
+    return Y, sum(ss for _, ss in parts) / int(X.shape[0])
+
+
+def _project_block(rows: np.ndarray, mean: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, float]:
+    """One block's features ``(rows - mean) W^T`` and sum of squared centred values."""
+    Xc = rows - mean
+    return (Xc @ W.T).astype(np.float32, copy=False), float(np.einsum("ij,ij->", Xc, Xc, dtype=np.float64))
 
 
 def intensity_pca_dask(

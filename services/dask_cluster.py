@@ -54,8 +54,16 @@ def dask_client(
     if workers < 1 or threads_per_worker < 1:
         raise LinoLocError(f"dask: workers and threads per worker must be >= 1, got {workers}, {threads_per_worker}")
     if scheduler is None:
-        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=threads_per_worker,
-                                           processes=True, dashboard_address=None, memory_limit=memory_limit)
+        import dask
+
+        # the workers' statistical profiler (a thread sampling every task's stack) and the
+        # nannies' and workers' memory and system monitors (every 0.1 s / 0.5 s) cost CPU the
+        # build wants on a small machine; the worker processes inherit these from their nannies
+        with dask.config.set({"distributed.worker.profile.enabled": False,
+                              "distributed.worker.memory.monitor-interval": "1s",
+                              "distributed.admin.system-monitor.interval": "2s"}):
+            cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=threads_per_worker,
+                                               processes=True, dashboard_address=None, memory_limit=memory_limit)
         try:
             with distributed.Client(cluster) as client:
                 log.info("dask: LocalCluster of %d workers x %d threads", workers, threads_per_worker)

@@ -148,6 +148,17 @@ def test_cli_dask_build_and_missing_extra(survey: Dataset, cluster: object, tmp_
     got = AppearanceMap.load(out)
     assert len(got) == 3 * N_IMAGES
     _assert_same_map(ref, got)
+    # a bad image is found by the worker that decodes it: one line naming the file
+    bad = tmp_path / "bad"
+    with DatasetWriter(bad, DatasetMeta(name="bad", camera=CAM)) as w:
+        for i in range(30):
+            w.add(np.full((CAM.height, CAM.width), 8 * i, np.uint8), (0.1 * i, 0.0, 0.0))
+    (bad / "images" / "000017.png").write_bytes(b"not a png")
+    capsys.readouterr()
+    assert cli.main(["map", "build", str(bad), "--out", str(tmp_path / "bad.npz"), "--features", "3", "--size",
+                     "40x30", "--engine", "dask", "--scheduler", address, "--chunk-rows", "10"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "000017.png" in err and "unreadable" in err and len(err.splitlines()) == 1, err
     monkeypatch.setitem(sys.modules, "distributed", None)  # the extra not installed
     capsys.readouterr()
     assert cli.main([*argv, "--engine", "dask"]) == 2

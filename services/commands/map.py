@@ -10,7 +10,8 @@
 
 A malformed dataset folder or a bad map file is a user error: one line on stderr, exit 2.
 ``map build`` refuses what ``lino-loc dataset check`` refuses (the same
-:func:`lino_loc.dataset.require_valid`, run before any PCA) in the files it reads
+:func:`lino_loc.dataset.require_valid`, run before any PCA; with ``--engine dask`` the images
+are checked by the workers as they decode them) in the files it reads
 (:func:`lino_loc.appearance_map.map_file_columns`: the images, and the disparity or depth
 column for the disparity channel; not the right images): the first problem, and how many
 more there are.
@@ -87,9 +88,16 @@ def _build(args: argparse.Namespace) -> int:
         raise LinoLocError("--scheduler needs --engine dask")
     ds = Dataset.open(args.dataset)
     virtual = None if args.virtual_headings == 1 else offsets(math.radians(args.virtual_step), args.virtual_headings)
+    # With the dask engine the workers check every image as they decode it (the first bad file
+    # stops the build with its name): a local pass decoding every image first would cost as
+    # much as the local build itself. The poses, and the disparity channel's files (read
+    # here), are checked here either way.
+    columns = map_file_columns(ds, args.channels)
+    if args.engine == "dask":
+        columns = tuple(c for c in columns if c != "image")
     bar = Progress("dataset check")
     try:
-        require_valid(ds, progress=bar.update, columns=map_file_columns(ds, args.channels))
+        require_valid(ds, progress=bar.update, columns=columns)
     finally:
         bar.close()
     if args.engine == "dask":
