@@ -60,6 +60,8 @@ import json
 import logging
 import math
 import os
+import tempfile
+import time
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -83,8 +85,10 @@ from lino_loc.dataset import (
     pose_problem,
 )
 from lino_loc.errors import LinoLocError
-from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, fit_pca
+from lino_loc.pca import PCA, PCA_METHODS, PcaMethod, RowChunks, fit_pca, fit_pca_streamed
 from lino_loc.preprocessing import PREPROCESS_METHODS, Preprocess, preprocess, to_vector
+from lino_loc.row_file import RowFile
+from lino_loc.survey_vectors import vectors_of_files
 from lino_loc.virtual_views import VirtualHeadings, augment_poses, augment_vectors, crop_columns
 
 log = logging.getLogger(__name__)
@@ -724,22 +728,53 @@ def load_vectors(
     w, h = int(size[0]), int(size[1])
     X = np.empty((n, w * h), dtype=np.float32)
     paths = [dataset.image_path(i) for i in range(n)]
-
     cam = dataset.meta.camera
 
     def work(lo: int, hi: int) -> int:
-        for i in range(lo, hi):
-            img = Dataset.read_grey(paths[i])
-            if img.shape != (cam.height, cam.width):
-                raise LinoLocError(
-                    f"{paths[i]}: {img.shape[1]}x{img.shape[0]} pixels, the camera of the dataset "
-                    f"is {cam.width}x{cam.height}"
-                )
-            X[i] = to_vector(preprocess(img, method), (w, h))
+        X[lo:hi] = vectors_of_files(paths[lo:hi], method, (w, h), (cam.width, cam.height))
         return hi - lo
 
     _in_chunks(n, work, workers=workers, progress=progress, chunk=chunk)
     return X
+
+
+def load_vectors_to_file(
+    dataset: Dataset,
+    method: Preprocess,
+    size: tuple[int, int],
+    scratch_dir: Path | str | None = None,
+    *,
+    virtual: VirtualHeadings | None = None,
+    workers: int | None = None,
+    progress: ProgressFn | None = None,
+    chunk: int = 64,
+    chunk_rows: int | None = None,
+) -> RowFile:
+    """:func:`load_vectors` into a :class:`lino_loc.row_file.RowFile` in ``scratch_dir``
+    (the caller closes it), with ``virtual`` each image's V turned views
+    (:func:`lino_loc.virtual_views.augment_vectors`, image-major as in memory): memory holds
+    only the chunks being decoded. ``chunk_rows``: rows per chunk when read back."""
+    n = len(dataset)
+    w, h = int(size[0]), int(size[1])
+    paths = [dataset.image_path(i) for i in range(n)]
+    cam = dataset.meta.camera
+    v = 1 if virtual is None else len(virtual.offsets)
+    dim = w * h if virtual is None else (w - 2 * virtual.margin) * h
+    rows = RowFile(n * v, dim, scratch_dir, chunk_rows)
+
+    def work(lo: int, hi: int) -> int:
+        X = vectors_of_files(paths[lo:hi], method, (w, h), (cam.width, cam.height))
+        if virtual is not None:
+            X = augment_vectors(X, (w, h), virtual.K, virtual.offsets, virtual.margin)
+        rows.write(lo * v, X)
+        return hi - lo
+
+    try:
+        _in_chunks(n, work, workers=workers, progress=progress, chunk=chunk)
+    except BaseException:
+        rows.close()
+        raise
+    return rows
 
 
 def _in_chunks(
@@ -776,15 +811,16 @@ def _in_chunks(
             raise
 
 
-def _project_rows(pca: PCA, X: np.ndarray, block: int = 1024) -> tuple[np.ndarray, float]:
+def _project_rows(pca: PCA, X: np.ndarray | RowChunks, block: int = 1024) -> tuple[np.ndarray, float]:
     """Features of every row (eq. 1), and the total variance sum_j var(x_j), in row blocks
-    (no full centred copy of X)."""
+    (no full centred copy of X); X in memory or read in chunks (:class:`lino_loc.row_file.RowFile`)."""
     n = X.shape[0]
     Y = np.empty((n, pca.components.shape[0]), dtype=np.float32)
     ss = 0.0
-    for lo in range(0, n, block):
-        Xc = X[lo : lo + block] - pca.mean
-        Y[lo : lo + block] = Xc @ pca.components.T
+    chunks = ((lo, X[lo : lo + block]) for lo in range(0, n, block)) if isinstance(X, np.ndarray) else X.chunks()
+    for lo, rows in chunks:
+        Xc = rows - pca.mean
+        Y[lo : lo + len(rows)] = Xc @ pca.components.T
         ss += float(np.einsum("ij,ij->", Xc, Xc, dtype=np.float64))
     return Y, ss / n
 
@@ -832,6 +868,31 @@ def intensity_channel_from_vectors(
     )
 
 
+#: Largest data matrix (N x D float32, virtual views included) the local map build keeps in
+#: memory, in MiB; a larger survey is streamed from a scratch file in chunks of rows
+#: (:mod:`lino_loc.row_file`, :func:`lino_loc.pca.fit_pca_streamed`). 1 GiB: a survey of up
+#: to about 55 000 views at the default 80 x 60 stays in memory, a floor's 100 000 views
+#: stream, so that a build fits a robot-class computer of 4 GB next to the running service
+#: (peak memory and the cost of streaming: docs/scale.md).
+DEFAULT_MEMORY_BUDGET_MB = 1024.0
+
+def _phase(name: str, seconds: float) -> None:
+    """Log how long a phase of the local build took (``extra``: ``phase``, ``seconds``)."""
+    log.info("map build: %s %.2f s", name, seconds, extra={"phase": name, "seconds": seconds})
+
+
+Engine = Literal["local", "dask"]
+ENGINES: tuple[str, ...] = ("local", "dask")
+
+
+def data_matrix_mb(n_rows: int, size: tuple[int, int], virtual: VirtualHeadings | None = None) -> float:
+    """MiB of the intensity channel's float32 data matrix for n_rows images at ``size``."""
+    w, h = int(size[0]), int(size[1])
+    if virtual is None:
+        return n_rows * w * h * 4 / 2**20
+    return n_rows * len(virtual.offsets) * (w - 2 * virtual.margin) * h * 4 / 2**20
+
+
 def build_intensity_channel(
     dataset: Dataset,
     n_features: int = DEFAULT_FEATURES,
@@ -843,11 +904,52 @@ def build_intensity_channel(
     seed: int = 0,
     workers: int | None = None,
     virtual: VirtualHeadings | None = None,
+    memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB,
+    scratch_dir: Path | str | None = None,
+    chunk_rows: int | None = None,
 ) -> ChannelMap:
     """The intensity channel: preprocess, area-average, PCA (eq. 1), features of every image
-    (of every virtual view with ``virtual``)."""
-    X = load_vectors(dataset, preprocess, size, workers=workers, progress=progress)
-    return intensity_channel_from_vectors(X, preprocess, size, n_features, virtual=virtual, method=method, seed=seed)
+    (of every virtual view with ``virtual``).
+
+    A data matrix (:func:`data_matrix_mb`) above ``memory_budget_mb`` is streamed: written to
+    a scratch file in ``scratch_dir`` (default the system's temporary folder) and read back in
+    chunks of ``chunk_rows`` rows (default 64 MiB) by :func:`lino_loc.pca.fit_pca_streamed`
+    and the projection; the same map up to float32 rounding. Only ``randomized`` streams:
+    ``gram`` and ``svd`` over the budget are a LinoLocError."""
+    mb = data_matrix_mb(len(dataset), size, virtual)
+    t0 = time.perf_counter()
+    if mb <= memory_budget_mb:
+        X = load_vectors(dataset, preprocess, size, workers=workers, progress=progress)
+        t1 = time.perf_counter()
+        _phase("load", t1 - t0)
+        ch = intensity_channel_from_vectors(X, preprocess, size, n_features, virtual=virtual, method=method,
+                                            seed=seed)
+        _phase("pca+features", time.perf_counter() - t1)
+        return ch
+    if method != "randomized":
+        raise LinoLocError(f"{dataset.root}: PCA method {method!r} needs the whole data matrix in memory "
+                           f"({mb:.0f} MiB, over the memory budget of {memory_budget_mb:.0f} MiB): use "
+                           f"randomized, which streams, or raise the memory budget")
+    log.info("map build: data matrix %.0f MiB over the memory budget of %.0f MiB: streaming from %s",
+             mb, memory_budget_mb, scratch_dir or tempfile.gettempdir())
+    with load_vectors_to_file(dataset, preprocess, size, scratch_dir, virtual=virtual, workers=workers,
+                              progress=progress, chunk_rows=chunk_rows) as rows:
+        t1 = time.perf_counter()
+        _phase("load", t1 - t0)
+        pca = fit_pca_streamed(rows, n_features, seed=seed)
+        t2 = time.perf_counter()
+        _phase("pca", t2 - t1)
+        Y, total = _project_rows(pca, rows)
+        _phase("features", time.perf_counter() - t2)
+    return ChannelMap(
+        name="intensity",
+        preprocess=preprocess,
+        size=(int(size[0]), int(size[1])),
+        pca=pca,
+        features=Y,
+        method=method,
+        params={"total_variance": total, "seed": seed, **(virtual.params() if virtual else {})},
+    )
 
 
 #: ``source`` of a disparity channel built from a dataset's dense ``depth`` column.
@@ -990,8 +1092,20 @@ def build_map(
     workers: int | None = None,
     virtual_offsets: Sequence[float] | None = None,
     disparity_features: int | None = None,
+    engine: Engine = "local",
+    memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB,
+    scratch_dir: Path | str | None = None,
+    chunk_rows: int | None = None,
 ) -> AppearanceMap:
     """Build an appearance map from a dataset (eq. 1 for every image).
+
+    ``engine="local"``: in this process; a data matrix over ``memory_budget_mb`` is streamed
+    through a scratch file in ``scratch_dir`` (:func:`build_intensity_channel`).
+    ``engine="dask"``: the intensity channel's image loading, preprocessing, PCA and
+    projection run as Dask tasks on the current Dask scheduler (a ``distributed.Client``
+    the caller set up, :func:`lino_loc.pca_dask.intensity_pca_dask`; ``chunk_rows``
+    images per task); only ``method="randomized"``. The disparity channel's EM-PCA runs in
+    this process with either engine (:mod:`lino_loc.pca_dask` says why).
 
     ``disparity_features``: the disparity channel's number of features (default
     ``n_features``); its EM-PCA's cost grows with the square of it.
@@ -1011,11 +1125,23 @@ def build_map(
     unknown = [c for c in channels if c not in ("intensity", "disparity")]
     if unknown or "intensity" not in channels:
         raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
-    chans: dict[str, ChannelMap] = {
-        "intensity": build_intensity_channel(
-            ds, n_features, preprocess, (w, h), progress, method=method, seed=seed, workers=workers, virtual=virtual
-        )
-    }
+    if engine == "dask":
+        if method != "randomized":
+            raise LinoLocError(f"map build: the dask engine computes the randomized PCA only, got method {method!r}")
+        from lino_loc.pca_dask import intensity_pca_dask
+
+        pca, Y, total = intensity_pca_dask(ds, n_features, preprocess, (w, h), seed=seed, virtual=virtual,
+                                           chunk_rows=chunk_rows)
+        intensity = ChannelMap(name="intensity", preprocess=preprocess, size=(w, h), pca=pca, features=Y,
+                               method=method,
+                               params={"total_variance": total, "seed": seed, **(virtual.params() if virtual else {})})
+    elif engine == "local":
+        intensity = build_intensity_channel(ds, n_features, preprocess, (w, h), progress, method=method, seed=seed,
+                                            workers=workers, virtual=virtual, memory_budget_mb=memory_budget_mb,
+                                            scratch_dir=scratch_dir, chunk_rows=chunk_rows)
+    else:
+        raise LinoLocError(f"map build: unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
+    chans: dict[str, ChannelMap] = {"intensity": intensity}
     if "disparity" in channels:
         chans["disparity"] = build_disparity_channel(ds, disparity_features or n_features, (w, h), progress,
                                                      seed=seed, virtual=virtual, workers=workers)

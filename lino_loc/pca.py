@@ -43,8 +43,9 @@ Usage::
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, Protocol, get_args
 
 import numpy as np
 import scipy.linalg
@@ -97,13 +98,113 @@ def _sign_fix(V: np.ndarray) -> np.ndarray:
     return V * signs[:, None]
 
 
+def randomized_svd(
+    a_mul: Callable[[np.ndarray], Any],
+    at_mul: Callable[[Any], np.ndarray],
+    dim: int,
+    d: int,
+    ell: int,
+    n_iter: int,
+    seed: int,
+    dtype: np.dtype | type = np.float32,
+    qr_tall: Callable[[Any], Any] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Top-d right singular vectors and values of a centred data matrix Xc (N, D) given only
+    its products (Halko, Martinsson & Tropp 2011, Alg. 4.4 + 5.1, the module docstring's
+    ``randomized``): ``a_mul(M) = Xc @ M`` for M (D, ell) and ``at_mul(Q) = Xc^T @ Q``
+    (a numpy (D, ell) array) for what ``qr_tall`` returns.
+
+    The test matrix is ``default_rng(seed).standard_normal((dim, ell))`` in ``dtype``, so
+    every way of computing the products (in memory, streamed from disk in row chunks,
+    :func:`fit_pca_streamed`; on Dask arrays, :mod:`lino_loc.pca_dask`) starts from the same
+    sketch and gives the same subspace up to rounding. ``qr_tall(Y)`` returns the Q factor
+    of the tall (N, ell) products (default numpy's QR; a Dask caller passes tsqr). Every
+    ``a_mul`` / ``at_mul`` is one pass over the data: ``2 n_iter + 2`` passes in all.
+    """
+    rng = np.random.default_rng(seed)
+    qr = qr_tall if qr_tall is not None else (lambda Y: np.linalg.qr(Y)[0])
+    omega = rng.standard_normal((dim, ell)).astype(dtype)
+    Q = qr(a_mul(omega))
+    for _ in range(n_iter):
+        Z, _ = np.linalg.qr(at_mul(Q))
+        Q = qr(a_mul(Z))
+    B = at_mul(Q).T  # (ell, D) = Q^T Xc
+    _, s, Vt = np.linalg.svd(B.astype(np.float64), full_matrices=False)
+    return Vt[:d], s[:d]
+
+
+class IllConditioned(ArithmeticError):
+    """A fused pass's Gram matrix was too ill-conditioned for Cholesky QR (the caller falls back
+    to :func:`randomized_svd`'s separate passes)."""
+
+
+#: Largest condition number of the range sketch ``Y`` for which :func:`randomized_svd_fused`
+#: orthonormalises it by Cholesky QR: in float64 the basis then loses at most about
+#: ``cond(Y)^2 * 1e-16 = 1e-6`` of orthogonality, float32's own rounding.
+MAX_CHOLESKY_COND = 1.0e5
+
+
+def block_products(rows: np.ndarray, mean32: np.ndarray, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One block of rows' share of a fused pass: with ``Y_b = (rows - mean) @ Z`` (the mean
+    subtracted implicitly, as ``rows @ Z - mean @ Z``), the sums ``rows^T Y_b`` (D, k),
+    ``Y_b^T Y_b`` and ``1^T Y_b`` (float32 products, float64 results) that
+    :func:`centred_products` turns into ``(Xc^T Y, Y^T Y)`` once summed over the blocks."""
+    Yb = rows @ Z
+    Yb -= mean32 @ Z
+    return (rows.T @ Yb).astype(np.float64), Yb.T.astype(np.float64) @ Yb.astype(np.float64), Yb.sum(axis=0, dtype=np.float64)
+
+
+def centred_products(sums: tuple[np.ndarray, np.ndarray, np.ndarray], mean32: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Xc^T Y, Y^T Y)`` from the summed :func:`block_products` (``Y = Xc Z`` is centred by
+    construction; ``Xc^T Y = X^T Y - mean 1^T Y``)."""
+    XtY, G, colsum = sums
+    return XtY - np.outer(mean32.astype(np.float64), colsum), G
+
+
+def randomized_svd_fused(
+    fused_pass: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    dim: int,
+    d: int,
+    ell: int,
+    n_iter: int,
+    seed: int,
+    dtype: np.dtype | type = np.float32,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`randomized_svd` with one pass over the data per power iteration instead of two.
+
+    ``fused_pass(Z)`` returns ``(Xc^T Y, Y^T Y)`` for ``Y = Xc Z`` (float64), which every block
+    of rows gives on its own (:func:`block_products`): Y is orthonormalised by Cholesky QR,
+    ``Q = Y R^-1`` with ``R^T R = Y^T Y`` (the Q of Householder QR up to column signs), so
+    ``Xc^T Q = (Xc^T Y) R^-1`` needs no second pass. ``n_iter + 1`` passes; the same test
+    matrix and the same subspace as :func:`randomized_svd` up to rounding. Raises
+    :class:`IllConditioned` when ``cond(Y)`` exceeds :data:`MAX_CHOLESKY_COND` (or Y is rank
+    deficient): then the caller uses :func:`randomized_svd`.
+    """
+    rng = np.random.default_rng(seed)
+    Z = rng.standard_normal((dim, ell)).astype(dtype)
+    P = np.empty((dim, ell))
+    for it in range(n_iter + 1):
+        XtY, G = fused_pass(Z)
+        try:
+            R = np.linalg.cholesky(G).T  # upper, positive diagonal
+        except np.linalg.LinAlgError:
+            raise IllConditioned("range sketch is rank deficient") from None
+        lam = np.linalg.eigvalsh(G)  # cond(Y)^2 = lam_max / lam_min
+        if not lam[0] > 0 or lam[-1] / lam[0] > MAX_CHOLESKY_COND**2:
+            raise IllConditioned(f"range sketch condition {np.sqrt(lam[-1] / max(lam[0], 1e-300)):.3g}")
+        P = scipy.linalg.solve_triangular(R, XtY.T, trans="T", lower=False).T  # Xc^T Q = XtY R^-1
+        if it < n_iter:
+            Z = np.linalg.qr(P.astype(dtype))[0]
+    _, s, Vt = np.linalg.svd(P.T, full_matrices=False)
+    return Vt[:d], s[:d]
+
+
 def _randomized(
     X: np.ndarray, mean: np.ndarray, d: int, oversamples: int, n_iter: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Top-d right singular vectors and values of ``X - mean`` (Halko et al. 2011)."""
+    """Top-d right singular vectors and values of ``X - mean`` (Halko et al. 2011), X in memory."""
     n, D = X.shape
     ell = min(d + oversamples, n, D)
-    rng = np.random.default_rng(seed)
     dt = X.dtype
     m = mean.astype(dt)
 
@@ -117,14 +218,98 @@ def _randomized(
         out -= np.outer(m, Q.sum(axis=0))
         return out
 
-    omega = rng.standard_normal((D, ell)).astype(dt)
-    Q, _ = np.linalg.qr(a_mul(omega))
-    for _ in range(n_iter):
-        Z, _ = np.linalg.qr(at_mul(Q))
-        Q, _ = np.linalg.qr(a_mul(Z))
-    B = at_mul(Q).T  # (ell, D) = Q^T Xc
-    _, s, Vt = np.linalg.svd(B.astype(np.float64), full_matrices=False)
-    return Vt[:d], s[:d]
+    return randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, dt)
+
+
+class RowChunks(Protocol):
+    """A data matrix (N, D) read in chunks of rows (e.g. :class:`lino_loc.row_file.RowFile`)."""
+
+    @property
+    def shape(self) -> tuple[int, int]: ...
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(first_row, rows)`` for consecutive chunks covering all N rows in order."""
+        ...
+
+
+def fit_pca_streamed(
+    data: RowChunks,
+    n_components: int,
+    seed: int = 0,
+    *,
+    oversamples: int | None = None,
+    n_iter: int = DEFAULT_POWER_ITERATIONS,
+) -> PCA:
+    """:func:`fit_pca` ``method="randomized"`` on a float32 data matrix read in chunks of
+    rows, never all in memory: one pass for the mean, then the ``n_iter + 1`` fused passes of
+    :func:`randomized_svd_fused` (each chunk's products on their own, summed), or, should the
+    sketch be too ill-conditioned for Cholesky QR, the ``2 n_iter + 2`` passes of
+    :func:`randomized_svd` with the (N, ell) basis in memory. Peak memory: one chunk and a few
+    (D, ell) products, ell = 2 d + 10. The same test matrix, oversampling, power iterations and
+    implicit centring as in memory: the same W up to rounding."""
+    n, D = data.shape
+    d = _checked_counts(n, D, n_components)
+    total = np.zeros(D, dtype=np.float64)
+    for _, rows in data.chunks():
+        if not np.all(np.isfinite(rows)):
+            raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
+        total += rows.sum(axis=0, dtype=np.float64)
+    mean = total / n
+    m = mean.astype(np.float32)
+    ell = min(d + (d + DEFAULT_OVERSAMPLES if oversamples is None else int(oversamples)), n, D)
+
+    def fused_pass(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sums = None
+        for _, rows in data.chunks():
+            part = block_products(rows, m, Z)
+            sums = part if sums is None else tuple(a + b for a, b in zip(sums, part, strict=True))
+        return centred_products(sums, m)  # type: ignore[arg-type]
+
+    try:
+        V, s = randomized_svd_fused(fused_pass, D, d, ell, n_iter, seed, np.float32)
+        return finished_pca(V, s, mean, n)
+    except IllConditioned:
+        pass
+
+    def a_mul(M: np.ndarray) -> np.ndarray:
+        out = np.empty((n, M.shape[1]), dtype=np.float32)
+        for lo, rows in data.chunks():
+            out[lo : lo + len(rows)] = rows @ M
+        out -= m @ M
+        return out
+
+    def at_mul(Q: np.ndarray) -> np.ndarray:
+        out = np.zeros((D, Q.shape[1]), dtype=np.float32)
+        for lo, rows in data.chunks():
+            out += rows.T @ Q[lo : lo + len(rows)]
+        out -= np.outer(m, Q.sum(axis=0))
+        return out
+
+    V, s = randomized_svd(a_mul, at_mul, D, d, ell, n_iter, seed, np.float32)
+    return finished_pca(V, s, mean, n)
+
+
+def finished_pca(V: np.ndarray, s: np.ndarray, mean: np.ndarray, n: int) -> PCA:
+    """The :class:`PCA` of right singular vectors V (d, D) and values s of the centred data of
+    n rows with ``mean``: signs fixed (:func:`_sign_fix`), explained variance ``s^2 / n``."""
+    V = _sign_fix(np.asarray(V, dtype=np.float64))
+    return PCA(
+        mean=np.asarray(mean).astype(np.float32),
+        components=np.ascontiguousarray(V, dtype=np.float32),
+        explained_variance=(np.asarray(s, dtype=np.float64) ** 2 / n).astype(np.float32),
+    )
+
+
+def _checked_counts(n: int, D: int, n_components: int) -> int:
+    """d = n_components; LinoLocError unless 1 <= d <= min(n - 1, D) and n >= 2."""
+    d = int(n_components)
+    if d < 1:
+        raise LinoLocError(f"fit_pca: n_components must be >= 1, got {d}")
+    if n < 2 or d > min(n - 1, D):
+        raise LinoLocError(
+            f"fit_pca: {d} components asked but {n} images of {D} pixels allow at most {max(min(n - 1, D), 0)}"
+        )
+    return d
 
 
 def _top_eigh(G: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -174,13 +359,7 @@ def fit_pca(
     if X.dtype != np.float64:
         X = X.astype(np.float32, copy=False)
     n, D = X.shape
-    d = int(n_components)
-    if d < 1:
-        raise LinoLocError(f"fit_pca: n_components must be >= 1, got {d}")
-    if n < 2 or d > min(n - 1, D):
-        raise LinoLocError(
-            f"fit_pca: {d} components asked but {n} images of {D} pixels allow at most {max(min(n - 1, D), 0)}"
-        )
+    d = _checked_counts(n, D, n_components)
     if not np.all(np.isfinite(X)):
         raise LinoLocError("fit_pca: data contain NaN or infinite values (use pca_missing for sparse data)")
     mean = X.mean(axis=0, dtype=np.float64)
@@ -195,12 +374,7 @@ def fit_pca(
         V, s = Vt[:d], s_all[:d]
     else:
         raise LinoLocError(f"fit_pca: unknown method {method!r} (choose from {', '.join(PCA_METHODS)})")
-    V = _sign_fix(np.asarray(V, dtype=np.float64))
-    return PCA(
-        mean=mean.astype(np.float32),
-        components=np.ascontiguousarray(V, dtype=np.float32),
-        explained_variance=(np.asarray(s, dtype=np.float64) ** 2 / n).astype(np.float32),
-    )
+    return finished_pca(V, s, mean, n)
 
 
 def principal_angles(A: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -4,33 +4,48 @@
                        [--size 80x60] [--condition tube] [--method randomized|gram|svd]
                        [--channels intensity[,disparity]]
                        [--virtual-headings N [--virtual-step DEG]] [--json]
+                       [--engine local|dask [--scheduler ADDRESS | --workers 2] [--chunk-rows N]]
+                       [--memory-budget MB] [--scratch DIR]
     lino-loc map info MAP [--json]
 
 A malformed dataset folder or a bad map file is a user error: one line on stderr, exit 2.
 ``map build`` refuses what ``lino-loc dataset check`` refuses (the same
-:func:`lino_loc.dataset.require_valid`, run before any PCA) in the files it reads
+:func:`lino_loc.dataset.require_valid`, run before any PCA; with ``--engine dask`` the images
+are checked by the workers as they decode them) in the files it reads
 (:func:`lino_loc.appearance_map.map_file_columns`: the images, and the disparity or depth
 column for the disparity channel; not the right images): the first problem, and how many
 more there are.
+
+``--engine dask`` runs the intensity channel's loading, preprocessing, PCA and projection on
+a Dask cluster (:mod:`lino_loc.pca_dask`): a LocalCluster of ``--workers`` processes, or the
+running cluster at ``--scheduler`` (:mod:`services.dask_cluster`); needs the ``cluster``
+extra. The local engine streams a data matrix larger than ``--memory-budget`` MiB through a
+scratch file in ``--scratch`` (default: the output map's folder).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
 import sys
 import time
+from collections.abc import Sequence
+from pathlib import Path
 
 from lino_loc.appearance_map import (
     DEFAULT_FEATURES,
+    DEFAULT_MEMORY_BUDGET_MB,
     DEFAULT_SIZE,
+    ENGINES,
     AppearanceMap,
     build_map,
     map_file_columns,
 )
 from lino_loc.dataset import Dataset, require_valid
+from lino_loc.errors import LinoLocError
 from lino_loc.pca import PCA_METHODS
 from lino_loc.preprocessing import PREPROCESS_METHODS
 from lino_loc.virtual_views import offsets
@@ -69,29 +84,65 @@ def _positive_int(text: str) -> int:
 
 def _build(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
+    if args.scheduler is not None and args.engine != "dask":
+        raise LinoLocError("--scheduler needs --engine dask")
     ds = Dataset.open(args.dataset)
     virtual = None if args.virtual_headings == 1 else offsets(math.radians(args.virtual_step), args.virtual_headings)
+    # With the dask engine the workers check every image as they decode it (the first bad file
+    # stops the build with its name): a local pass decoding every image first would cost as
+    # much as the local build itself. The poses, and the disparity channel's files (read
+    # here), are checked here either way.
+    columns = map_file_columns(ds, args.channels)
+    if args.engine == "dask":
+        columns = tuple(c for c in columns if c != "image")
     bar = Progress("dataset check")
     try:
-        require_valid(ds, progress=bar.update, columns=map_file_columns(ds, args.channels))
+        require_valid(ds, progress=bar.update, columns=columns)
     finally:
         bar.close()
+    if args.engine == "dask":
+        from services.dask_cluster import dask_client
+
+        cluster = dask_client(args.scheduler, workers=args.workers)
+    else:
+        cluster = contextlib.nullcontext()
     bar = Progress("map build")
     try:
-        amap = build_map(
-            ds,
-            n_features=args.features,
-            preprocess=args.preprocess,
-            size=args.size,
-            condition=args.condition,
-            progress=bar.update,
-            method=args.method,
-            channels=args.channels,
-            virtual_offsets=virtual,
-            disparity_features=args.disparity_features,
-        )
+        with cluster:
+            amap = _build_map(ds, args, virtual, bar)
     finally:
         bar.close()
+    return _finish(amap, args, t0)
+
+
+def _scratch(args: argparse.Namespace) -> Path | None:
+    """--scratch, else the output map's folder if it exists (None: the system's temporary folder)."""
+    if args.scratch is not None:
+        return Path(args.scratch)
+    folder = Path(args.out).resolve().parent
+    return folder if folder.is_dir() else None
+
+
+def _build_map(ds: Dataset, args: argparse.Namespace, virtual: Sequence[float] | None, bar: Progress) -> AppearanceMap:
+    return build_map(
+        ds,
+        n_features=args.features,
+        preprocess=args.preprocess,
+        size=args.size,
+        condition=args.condition,
+        progress=bar.update,
+        method=args.method,
+        channels=args.channels,
+        virtual_offsets=virtual,
+        disparity_features=args.disparity_features,
+        engine=args.engine,
+        memory_budget_mb=args.memory_budget,
+        scratch_dir=_scratch(args),
+        chunk_rows=args.chunk_rows,
+    )
+
+
+def _finish(amap: AppearanceMap, args: argparse.Namespace, t0: float) -> int:
     path = amap.save(args.out)
     elapsed = time.perf_counter() - t0
     summary = {
@@ -206,6 +257,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--virtual-step", type=float, default=3.0, metavar="DEG",
                    help="degrees between virtual headings (default %(default)s)")
+    p.add_argument("--engine", choices=ENGINES, default="local",
+                   help="local (this process) or dask (a Dask cluster: needs lino-loc[cluster]); default %(default)s")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="with --engine dask: a running Dask scheduler (e.g. tcp://10.0.0.5:8786); default a LocalCluster")
+    p.add_argument("--workers", type=_positive_int, default=2, metavar="N",
+                   help="with --engine dask and no --scheduler: the LocalCluster's worker processes (default %(default)s)")
+    p.add_argument("--chunk-rows", type=_positive_int, default=None, metavar="N",
+                   help="images per Dask task, or rows per chunk when the local build streams (default: 64 MiB of rows)")
+    p.add_argument("--memory-budget", type=float, default=DEFAULT_MEMORY_BUDGET_MB, metavar="MB",
+                   help="local engine: a larger data matrix (images x pixels float32, MiB) is streamed from a "
+                   "scratch file in chunks (default %(default)g)")
+    p.add_argument("--scratch", default=None, metavar="DIR",
+                   help="folder of the streamed build's scratch file (default: the --out map's folder)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")
     p.set_defaults(func=_build)
 
