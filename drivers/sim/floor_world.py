@@ -27,6 +27,9 @@ from typing import Any
 from drivers.sim.config_files import WORLDS_DIR
 
 WALL_M = 0.15  # wall thickness between rooms
+#: The floor's survey grid: the lab's spacing (benchmarks/bench_map_build.py --make-lab-survey:
+#: 0.5 m, 10 deg), 3249 free positions x 36 headings = 116,964 views.
+SURVEY_GRID = {"step": 0.5, "heading_step_deg": 10.0}
 CEILING_M = 2.8
 DOOR_W, DOOR_H = 1.0, 2.1
 
@@ -147,7 +150,8 @@ def _tubes(rect: dict[str, float], along_x: bool) -> list[dict[str, Any]]:
 
 
 def _build(name: str, description: str, rooms: list[dict[str, Any]], corridor: dict[str, Any],
-           openings: list[dict[str, Any]], changes: dict[str, Any]) -> dict[str, Any]:
+           openings: list[dict[str, Any]], changes: dict[str, Any],
+           survey: dict[str, float] | None = None) -> dict[str, Any]:
     furniture, lamps, tubes = [], [], []
     for room in rooms:
         kind = _KINDS[room["_kind"]]
@@ -181,6 +185,7 @@ def _build(name: str, description: str, rooms: list[dict[str, Any]], corridor: d
                         "lights": [{"type": "sun", "direction": [0.3, -0.6, -0.75], "power": 15.0}]},
         },
         "scene_changes": changes,
+        **({"survey": survey} if survey else {}),
     }
 
 
@@ -258,7 +263,7 @@ def floor_world() -> dict[str, Any]:
     }
     return _build("floor", "An office floor of 40 x 25 m: a corridor between a row of offices and a lab "
                   "(south) and meeting rooms, a kitchen and an office (north), joined by doorways.",
-                  rooms, corridor, openings, changes)
+                  rooms, corridor, openings, changes, survey=SURVEY_GRID)
 
 
 def corridor_floor(per_side: int, width: float = 7.2, depth: float = 6.0) -> dict[str, Any]:

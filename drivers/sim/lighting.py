@@ -35,7 +35,13 @@ import cv2
 import numpy as np
 
 from drivers.sim.textures import albedo_texture, texture_shape
-from drivers.sim.visibility import cell_sets, cells_at, potentially_visible
+from drivers.sim.visibility import (
+    cell_sets,
+    cells_at,
+    oriented_portals,
+    potentially_visible,
+    visible_cells,
+)
 from drivers.sim.world import Box, Geometry, TextureSpec, Wall, World
 
 MIP_LEVELS = 4
@@ -372,12 +378,20 @@ _PVS_CACHE: dict[str, list[np.ndarray]] = {}
 
 def _irradiance_culled(world: World, lighting: str, pts: np.ndarray, nrm: np.ndarray, two_sided: np.ndarray,
                        shadowed: np.ndarray, samples: _Samples, geo: Geometry, boxes: np.ndarray) -> np.ndarray:
-    """:func:`_irradiance` of a world with rooms, cell by cell: the lightmap points of a cell (the
-    cell holding the point moved 1 cm off its surface, where its shadow rays start) see only the
-    light samples, walls and boxes of the cells potentially visible from it
-    (:func:`drivers.sim.visibility.potentially_visible`); the others are blocked by a wall of
-    those cells in any case. Points in no cell or in two (on a portal) and light samples in no
-    cell or in two are traced against everything. The sun's windows are all kept."""
+    """:func:`_irradiance` of a world with rooms, cell by cell. The lightmap points of a cell C
+    (the cell holding the point moved 1 cm off its surface, where its shadow rays start) see
+
+    - the light samples q whose own view (:func:`drivers.sim.visibility.visible_cells` from q,
+      all round) reaches C: a shadow ray to any other sample crosses a wall;
+    - as occluders, the walls of the cells potentially visible from C
+      (:func:`drivers.sim.visibility.potentially_visible`): a shadow ray that crosses a wall
+      crosses one of these first;
+    - the boxes of the cells both potentially visible from C and seen by one of its samples: a
+      shadow ray that crosses no wall runs through such cells only.
+
+    Points in no cell or in two (on a portal) and light samples in no cell or in two are traced
+    against everything. The sun's windows are all kept. The result equals the unculled one up to
+    the order in which the samples' contributions are summed."""
     lay = geo.layout
     assert lay is not None
     pvs = _PVS_CACHE.get(world.fingerprint)
@@ -385,20 +399,29 @@ def _irradiance_culled(world: World, lighting: str, pts: np.ndarray, nrm: np.nda
         pvs = _PVS_CACHE[world.fingerprint] = potentially_visible(lay)
     sets = cell_sets(lay, len(geo.walls) - len(lay.walls), geo.boxes)
     rects = lay.rects
+    nc = len(rects)
     interior = _interior_mask(world, geo.walls)
     segs = _wall_segments(geo.walls)
     off = pts[:, :2] + 0.01 * nrm[:, :2]
     home = _home_cell(cells_at(rects, off[:, 0], off[:, 1]))
     s_home = _home_cell(cells_at(rects, samples.pos[:, 0], samples.pos[:, 1]))
+    ports = oriented_portals(lay)
+    lights = np.ones((len(samples.pos), nc), bool)  # sample q can light cell c
+    for q in np.flatnonzero(s_home >= 0):
+        seen = visible_cells(lay, samples.pos[q, 0], samples.pos[q, 1], -math.pi, math.pi, ports)
+        lights[q] = False
+        lights[q, seen] = True
     e = np.empty(len(pts), np.float64)
     for c in np.unique(home):
         idx = np.flatnonzero(home == c)
         if c < 0:
             sub, bx, wl = samples, boxes, segs[interior]
         else:
-            keep = (s_home < 0) | np.isin(s_home, pvs[c])
+            keep = lights[:, c]
             sub = _Samples(samples.pos[keep], samples.power[keep], samples.axis[keep], samples.lobe[keep])
-            w_idx, b_idx = sets.union(pvs[c])
+            w_idx, _ = sets.union(pvs[c])
+            lit = lights[keep].any(axis=0)
+            _, b_idx = sets.union(pvs[c][lit[pvs[c]]])
             bx, wl = boxes[b_idx], segs[w_idx[interior[w_idx]]]
         e[idx] = _irradiance(world, lighting, pts[idx], nrm[idx], two_sided[idx], shadowed[idx], sub, bx, wl,
                              geo.walls)

@@ -16,6 +16,7 @@ A world file (``config/worlds/<name>.json``) describes one floor of a building:
 - ``lighting``: one setup per name (``tube``, ``bulb``, ``natural``) with its light sources;
 - ``scene_changes``: named sets that add, move or remove furniture (``boxes``,
   ``moved_furniture``, ``people``), unknown to the map;
+- ``survey`` (optional): the default grid of ``lino-loc survey`` (``step``, ``heading_step_deg``);
 - ``rooms`` and ``openings`` (optional, then ``walls`` stays empty): a floor of several
   rooms, each with its own wall, floor and ceiling textures, joined by doorways; their walls,
   door jambs and lintels are generated (:mod:`drivers.sim.rooms`), and the renderer and the
@@ -57,7 +58,7 @@ from lino_loc.errors import LinoLocError
 
 __all__ = [
     "WORLDS_DIR", "Box", "BoxSpec", "Decal", "Furniture", "Geometry", "Light", "LightingSetup", "Opening",
-    "Rect", "Room", "SceneChange", "TextureSpec", "Vec2", "Vec3", "Wall", "Window", "World", "WorldSpec",
+    "Rect", "Room", "SceneChange", "SurveyGrid", "TextureSpec", "Vec2", "Vec3", "Wall", "Window", "World", "WorldSpec",
     "grid_poses", "load_world",
 ]
 
@@ -129,6 +130,13 @@ class SceneChange(_Model):
     remove: tuple[str, ...] = ()
 
 
+class SurveyGrid(_Model):
+    """The world's default survey grid (``lino-loc survey`` without ``--step``/``--heading-step``)."""
+
+    step: float = Field(gt=0.0)
+    heading_step_deg: float = Field(gt=0.0, le=360.0)
+
+
 class WorldSpec(_Model):
     name: str
     description: str = ""
@@ -145,6 +153,7 @@ class WorldSpec(_Model):
     scene_changes: dict[str, SceneChange] = {}
     rooms: tuple[Room, ...] = ()
     openings: tuple[Opening, ...] = ()
+    survey: SurveyGrid | None = None
 
     @model_validator(mode="after")
     def _references(self) -> WorldSpec:
@@ -252,7 +261,7 @@ class World:
         fp = getattr(self, "_fingerprint", None)
         if fp is None:
             # a world without rooms hashes as before rooms existed (caches stay valid)
-            empty = {k for k in ("rooms", "openings") if not getattr(self.spec, k)}
+            empty = {k for k in ("rooms", "openings", "survey") if not getattr(self.spec, k)}
             fp = hashlib.sha1(self.spec.model_dump_json(exclude=empty).encode()).hexdigest()
             self._fingerprint = fp
         return fp
