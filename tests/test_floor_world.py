@@ -14,6 +14,7 @@ from scipy import ndimage
 from drivers.sim.floor_world import FLOOR_JSON, corridor_floor, floor_world_json
 from drivers.sim.lighting import _walls_clear, bake
 from drivers.sim.renderer import CameraModel, Renderer
+from drivers.sim.survey import survey_poses
 from drivers.sim.visibility import cells_at, potentially_visible, visible_cells
 from drivers.sim.world import World, WorldSpec, load_world
 from lino_loc.errors import LinoLocError
@@ -205,7 +206,36 @@ def test_culled_render_equals_unculled(small: World) -> None:
 
 
 def test_culled_bake_equals_unculled(small: World) -> None:
-    for light in ("tube", "natural"):
+    for light in ("bulb", "natural"):  # point lights; windows and the sun
         a = bake(small, light, texel=0.02)
         b = bake(small, light, texel=0.02, cull=False)
         np.testing.assert_allclose(a.atlas, b.atlas, rtol=1e-6, atol=0)
+
+
+def test_floor_survey_grid_is_the_labs_spacing_about_100k_views(floor: World) -> None:
+    grid = floor.spec.survey
+    assert grid is not None and (grid.step, grid.heading_step_deg) == (0.5, 10.0)
+    poses, _ = survey_poses(floor, grid.step, math.radians(grid.heading_step_deg))
+    assert 90_000 <= len(poses) <= 125_000
+    assert np.all(floor.is_free(poses[:, 0], poses[:, 1], 0.25))
+    assert load_world("lab").spec.survey is None  # the others keep the command's default
+
+
+def test_survey_command_takes_the_worlds_grid(tmp_path: Path, small: World) -> None:
+    import argparse
+
+    from services.commands import survey_cmd
+
+    data = corridor_floor(1)
+    data["survey"] = {"step": 3.0, "heading_step_deg": 180.0}
+    path = tmp_path / "tiny.json"
+    path.write_text(json.dumps(data))
+    parser = argparse.ArgumentParser()
+    survey_cmd.register(parser.add_subparsers())
+    args = parser.parse_args(["survey", "--world", str(path), "--out", str(tmp_path / "ds"), "--no-stereo",
+                              "--width", "32", "--height", "24", "--json"])
+    assert args.func(args) == 0
+    expected, _ = survey_poses(small, 3.0, math.pi)
+    assert (args.step, args.heading_step) == (3.0, 180.0)
+    rows = (tmp_path / "ds" / "poses.csv").read_text().strip().splitlines()
+    assert len(rows) - 1 == len(expected) > 0
