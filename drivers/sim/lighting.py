@@ -35,7 +35,14 @@ import cv2
 import numpy as np
 
 from drivers.sim.textures import albedo_texture, texture_shape
-from drivers.sim.world import Box, TextureSpec, Wall, World
+from drivers.sim.visibility import (
+    cell_sets,
+    cells_at,
+    oriented_portals,
+    potentially_visible,
+    visible_cells,
+)
+from drivers.sim.world import Box, Geometry, TextureSpec, Wall, World
 
 MIP_LEVELS = 4
 FIXTURE_WIDTH = 0.15  # m, width of a tube's diffuser on the ceiling
@@ -80,6 +87,8 @@ class Baked:
     floor_sid: int = 0
     ceiling_sid: int = 1
     mean_radiance: float = 0.0
+    cell_floor_sid: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # worlds with rooms
+    cell_ceiling_sid: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def _paste(dst: np.ndarray, src: np.ndarray, col: int, row: int) -> None:
@@ -100,28 +109,24 @@ def _room_normal(world: World, a: np.ndarray, e: np.ndarray) -> np.ndarray:
     return n
 
 
-def build_surfaces(world: World, lighting: str, scene_changes: tuple[str, ...] = (), texel: float = 0.01) -> tuple[list[Surface], list[int], list[list[int]]]:
-    """All surfaces: floor (0), ceiling (1), walls, then the faces of every box.
-
-    Returns (surfaces, wall surface ids, per box the ids of its faces in the order
-    front(+x), back(-x), left(+y), right(-y), top, bottom; -1 when absent)."""
+def _floor_ceiling(surfaces: list[Surface], world: World, lighting: str, rect: tuple[float, float, float, float],
+                   floor_texture: str, ceiling_texture: str, texel: float, cell: str = "") -> None:
+    """Append the floor and the ceiling over ``rect`` (the ceiling with the tube fixtures of
+    every setup that fall on it, glowing only in ``lighting``'s)."""
     spec = world.spec
-    setup = world.check_lighting(lighting)
-    geo = world.geometry(scene_changes)
     tex = spec.textures
     hc = spec.ceiling_height
-    xmin, xmax, ymin, ymax = world.room
-    surfaces: list[Surface] = []
+    xmin, xmax, ymin, ymax = rect
+    tag = f":{cell}" if cell else ""
 
     def px(m: float) -> int:
         return int(round(m / texel))
 
-    # floor
-    floor_alb = albedo_texture(tex[spec.floor_texture], xmax - xmin, ymax - ymin, texel)
-    surfaces.append(Surface("floor", np.array([xmin, ymin, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+    floor_alb = albedo_texture(tex[floor_texture], xmax - xmin, ymax - ymin, texel)
+    surfaces.append(Surface("floor" + tag, np.array([xmin, ymin, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
                             xmax - xmin, ymax - ymin, np.array([0, 0, 1.0]), floor_alb))
     # ceiling with the tube fixtures of every setup (glowing only in the setup that has them)
-    ceil = albedo_texture(tex[spec.ceiling_texture], xmax - xmin, ymax - ymin, texel).copy()
+    ceil = albedo_texture(tex[ceiling_texture], xmax - xmin, ymax - ymin, texel).copy()
     emis = np.zeros_like(ceil)
     for name, st in spec.lighting.items():
         for light in st.lights:
@@ -140,9 +145,33 @@ def build_surfaces(world: World, lighting: str, scene_changes: tuple[str, ...] =
             if name == lighting:
                 glow = np.full(fix.shape, light.power / (math.pi * FIXTURE_WIDTH), np.float32) * (fix / FIXTURE_SPEC.albedo)
                 _paste(emis, glow, px(x0 - xmin), px(y0 - ymin))
-    surfaces.append(Surface("ceiling", np.array([xmin, ymin, hc]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+    surfaces.append(Surface("ceiling" + tag, np.array([xmin, ymin, hc]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
                             xmax - xmin, ymax - ymin, np.array([0, 0, -1.0]), ceil,
                             emission=emis if emis.any() else None, shadowed=False))
+
+
+def build_surfaces(world: World, lighting: str, scene_changes: tuple[str, ...] = (), texel: float = 0.01) -> tuple[list[Surface], list[int], list[list[int]]]:
+    """All surfaces: floor (0), ceiling (1), walls, then the faces of every box.
+
+    Returns (surfaces, wall surface ids, per box the ids of its faces in the order
+    front(+x), back(-x), left(+y), right(-y), top, bottom; -1 when absent)."""
+    spec = world.spec
+    setup = world.check_lighting(lighting)
+    geo = world.geometry(scene_changes)
+    tex = spec.textures
+    hc = spec.ceiling_height
+    xmin, xmax, ymin, ymax = world.room
+    surfaces: list[Surface] = []
+
+    def px(m: float) -> int:
+        return int(round(m / texel))
+
+    if geo.layout is None:
+        _floor_ceiling(surfaces, world, lighting, (xmin, xmax, ymin, ymax), spec.floor_texture, spec.ceiling_texture,
+                       texel)
+    else:
+        for c in geo.layout.cells:
+            _floor_ceiling(surfaces, world, lighting, c.rect, c.floor_texture, c.ceiling_texture, texel, c.id)
     # walls with decals and windows
     wall_ids: list[int] = []
     for i, w in enumerate(geo.walls):
@@ -151,7 +180,8 @@ def build_surfaces(world: World, lighting: str, scene_changes: tuple[str, ...] =
         length = float(np.linalg.norm(e))
         e /= length
         alb = albedo_texture(tex[w.texture], length, hc, texel).copy()
-        normal = _room_normal(world, a, e)
+        k = i - (len(geo.walls) - len(geo.layout.walls)) if geo.layout is not None else -1
+        normal = _room_normal(world, a, e) if k < 0 else np.array([*geo.layout.wall_normal[k], 0.0])
         # seen from the room, does u run to the viewer's left? then flip decals so that
         # posters and doors read the right way round
         flip = (e[0] * -normal[1] + e[1] * normal[0]) < 0
@@ -219,7 +249,8 @@ class _Samples:
     lobe: np.ndarray  # (m,) exponent of cos(angle to axis); 0 = isotropic
 
 
-def _light_samples(world: World, lighting: str, wall_normals: dict[int, np.ndarray]) -> _Samples:
+def _light_samples(world: World, lighting: str, wall_normals: dict[int, np.ndarray],
+                   walls: tuple[Wall, ...]) -> _Samples:
     setup = world.check_lighting(lighting)
     pos, power, axis, lobe = [], [], [], []
     for light in setup.lights:
@@ -238,7 +269,7 @@ def _light_samples(world: World, lighting: str, wall_normals: dict[int, np.ndarr
                 lobe.append(1.0)
     if setup.windows_open and setup.window_radiance > 0:
         nu, nv = int(setup.window_samples[0]), int(setup.window_samples[1])
-        for i, w in enumerate(world.spec.walls):
+        for i, w in enumerate(walls):
             if not w.windows:
                 continue
             a = np.array([w.start[0], w.start[1], 0.0])
@@ -323,15 +354,84 @@ def _visible_pairs(p: np.ndarray, q: np.ndarray, boxes: np.ndarray) -> np.ndarra
 def interior_walls(world: World, walls: tuple[Wall, ...]) -> np.ndarray:
     """(K, 4) segments (x0, y0, x1, y1) of the walls not lying on one side of the room
     rectangle (both ends on the same side, within 1 mm): the ones that cast shadows."""
+    return _wall_segments(walls)[_interior_mask(world, walls)]
+
+
+def _wall_segments(walls: tuple[Wall, ...]) -> np.ndarray:
+    return np.array([(*w.start, *w.end) for w in walls], np.float64).reshape(-1, 4)
+
+
+def _interior_mask(world: World, walls: tuple[Wall, ...]) -> np.ndarray:
+    """(W,) whether each wall is interior (see :func:`interior_walls`)."""
     xmin, xmax, ymin, ymax = world.room
     out = []
     for w in walls:
         (x0, y0), (x1, y1) = w.start, w.end
         on_side = any(abs(a - v) < 1e-3 and abs(b - v) < 1e-3
                       for a, b, v in ((x0, x1, xmin), (x0, x1, xmax), (y0, y1, ymin), (y0, y1, ymax)))
-        if not on_side:
-            out.append((x0, y0, x1, y1))
-    return np.array(out, np.float64).reshape(-1, 4)
+        out.append(not on_side)
+    return np.array(out, bool)
+
+
+_PVS_CACHE: dict[str, list[np.ndarray]] = {}
+
+
+def _irradiance_culled(world: World, lighting: str, pts: np.ndarray, nrm: np.ndarray, two_sided: np.ndarray,
+                       shadowed: np.ndarray, samples: _Samples, geo: Geometry, boxes: np.ndarray) -> np.ndarray:
+    """:func:`_irradiance` of a world with rooms, cell by cell. The lightmap points of a cell C
+    (the cell holding the point moved 1 cm off its surface, where its shadow rays start) see
+
+    - the light samples q whose own view (:func:`drivers.sim.visibility.visible_cells` from q,
+      all round) reaches C: a shadow ray to any other sample crosses a wall;
+    - as occluders, the walls of the cells potentially visible from C
+      (:func:`drivers.sim.visibility.potentially_visible`): a shadow ray that crosses a wall
+      crosses one of these first;
+    - the boxes of the cells both potentially visible from C and seen by one of its samples: a
+      shadow ray that crosses no wall runs through such cells only.
+
+    Points in no cell or in two (on a portal) and light samples in no cell or in two are traced
+    against everything. The sun's windows are all kept. The result equals the unculled one up to
+    the order in which the samples' contributions are summed."""
+    lay = geo.layout
+    assert lay is not None
+    pvs = _PVS_CACHE.get(world.fingerprint)
+    if pvs is None:
+        pvs = _PVS_CACHE[world.fingerprint] = potentially_visible(lay)
+    sets = cell_sets(lay, len(geo.walls) - len(lay.walls), geo.boxes)
+    rects = lay.rects
+    nc = len(rects)
+    interior = _interior_mask(world, geo.walls)
+    segs = _wall_segments(geo.walls)
+    off = pts[:, :2] + 0.01 * nrm[:, :2]
+    home = _home_cell(cells_at(rects, off[:, 0], off[:, 1]))
+    s_home = _home_cell(cells_at(rects, samples.pos[:, 0], samples.pos[:, 1]))
+    ports = oriented_portals(lay)
+    lights = np.ones((len(samples.pos), nc), bool)  # sample q can light cell c
+    for q in np.flatnonzero(s_home >= 0):
+        seen = visible_cells(lay, samples.pos[q, 0], samples.pos[q, 1], -math.pi, math.pi, ports)
+        lights[q] = False
+        lights[q, seen] = True
+    e = np.empty(len(pts), np.float64)
+    for c in np.unique(home):
+        idx = np.flatnonzero(home == c)
+        if c < 0:
+            sub, bx, wl = samples, boxes, segs[interior]
+        else:
+            keep = lights[:, c]
+            sub = _Samples(samples.pos[keep], samples.power[keep], samples.axis[keep], samples.lobe[keep])
+            w_idx, _ = sets.union(pvs[c])
+            lit = lights[keep].any(axis=0)
+            _, b_idx = sets.union(pvs[c][lit[pvs[c]]])
+            bx, wl = boxes[b_idx], segs[w_idx[interior[w_idx]]]
+        e[idx] = _irradiance(world, lighting, pts[idx], nrm[idx], two_sided[idx], shadowed[idx], sub, bx, wl,
+                             geo.walls)
+    return e
+
+
+def _home_cell(inside: np.ndarray) -> np.ndarray:
+    """(N,) the one cell each row of ``inside`` (N, C) holds, -1 for none or several."""
+    one = inside.sum(axis=1) == 1
+    return np.where(one, inside.argmax(axis=1), -1)
 
 
 def _walls_clear(p: np.ndarray, q: np.ndarray, walls: np.ndarray, pairs: bool = False) -> np.ndarray:
@@ -354,7 +454,7 @@ def _walls_clear(p: np.ndarray, q: np.ndarray, walls: np.ndarray, pairs: bool = 
 
 def _irradiance(world: World, lighting: str, pts: np.ndarray, nrm: np.ndarray, two_sided: np.ndarray,
                 shadowed: np.ndarray, samples: _Samples, boxes: np.ndarray,
-                walls: np.ndarray | None = None) -> np.ndarray:
+                walls: np.ndarray | None = None, windows: tuple[Wall, ...] = ()) -> np.ndarray:
     setup = world.check_lighting(lighting)
     e = np.full(len(pts), setup.ambient, np.float64)
     chunk = max(1, 200_000 // max(1, len(samples.pos)))
@@ -381,18 +481,18 @@ def _irradiance(world: World, lighting: str, pts: np.ndarray, nrm: np.ndarray, t
         for light in setup.lights:
             if light.type == "sun" and setup.windows_open:
                 e[s0:s0 + chunk] += _sun(world, light.direction, light.power, pts[s0:s0 + chunk],
-                                         nrm[s0:s0 + chunk], boxes, walls)
+                                         nrm[s0:s0 + chunk], boxes, walls, windows)
     return e
 
 
 def _sun(world: World, direction: tuple[float, float, float], power: float, pts: np.ndarray, nrm: np.ndarray,
-         boxes: np.ndarray, walls: np.ndarray | None = None) -> np.ndarray:
+         boxes: np.ndarray, walls: np.ndarray | None = None, windows: tuple[Wall, ...] = ()) -> np.ndarray:
     d = np.array(direction, float)
     d /= np.linalg.norm(d)
     cos_s = np.maximum(-(nrm @ d), 0.0)
     lit = np.zeros(len(pts), bool)
     far = np.zeros_like(pts)
-    for w in world.spec.walls:
+    for w in windows or world.spec.walls:
         if not w.windows:
             continue
         a = np.array([w.start[0], w.start[1], 0.0])
@@ -438,11 +538,16 @@ _BAKE_CACHE: dict[tuple, Baked] = {}
 _BAKE_CACHE_SIZE = 8
 
 
-def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str] = (), texel: float = 0.01) -> Baked:
-    """Radiance atlas of ``world`` under ``lighting`` with ``scene_changes`` (cached in memory)."""
+def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str] = (), texel: float = 0.01,
+         cull: bool = True) -> Baked:
+    """Radiance atlas of ``world`` under ``lighting`` with ``scene_changes`` (cached in memory).
+
+    ``cull`` (a world with rooms): trace each cell's lightmap points only against what the cell
+    can see (:func:`_irradiance_culled`); the result is the unculled one up to the order of
+    summation of the light samples."""
     changes = world.check_changes(tuple(scene_changes))
     world.check_lighting(lighting)
-    key = (world.fingerprint, lighting, changes, float(texel))
+    key = (world.fingerprint, lighting, changes, float(texel), bool(cull))
     if key in _BAKE_CACHE:
         _BAKE_CACHE[key] = _BAKE_CACHE.pop(key)  # most recently used last
         return _BAKE_CACHE[key]
@@ -450,7 +555,7 @@ def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str]
     geo = world.geometry(changes)
     boxes = _box_arrays(geo.boxes)
     wall_normals = {i: surfaces[sid].normal for i, sid in enumerate(wall_ids)}
-    samples = _light_samples(world, lighting, wall_normals)
+    samples = _light_samples(world, lighting, wall_normals, geo.walls)
     # lightmap points of all surfaces at once
     pts, nrms, two, shad, shapes = [], [], [], [], []
     for s in surfaces:
@@ -460,8 +565,13 @@ def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str]
         two.append(np.full(len(p), s.two_sided))
         shad.append(np.full(len(p), s.shadowed))
         shapes.append((r, c))
-    e_all = _irradiance(world, lighting, np.concatenate(pts), np.concatenate(nrms), np.concatenate(two),
-                        np.concatenate(shad), samples, boxes, interior_walls(world, geo.walls))
+    if geo.layout is not None and cull:
+        e_all = _irradiance_culled(world, lighting, np.concatenate(pts), np.concatenate(nrms), np.concatenate(two),
+                                   np.concatenate(shad), samples, geo, boxes)
+    else:
+        e_all = _irradiance(world, lighting, np.concatenate(pts), np.concatenate(nrms), np.concatenate(two),
+                            np.concatenate(shad), samples, boxes, interior_walls(world, geo.walls),
+                            geo.walls if geo.layout is not None else ())
     levels: list[list[np.ndarray]] = [[] for _ in range(MIP_LEVELS)]
     k = 0
     for s, (r, c) in zip(surfaces, shapes, strict=True):
@@ -507,6 +617,9 @@ def bake(world: World, lighting: str, scene_changes: tuple[str, ...] | list[str]
         box_face_sid=np.array(box_faces, np.int64).reshape(-1, 6),
         mean_radiance=mean_rad,
     )
+    if geo.layout is not None:  # per cell: floor 2 c, ceiling 2 c + 1 (build_surfaces)
+        baked.cell_floor_sid = 2 * np.arange(len(geo.layout.cells), dtype=np.int64)
+        baked.cell_ceiling_sid = baked.cell_floor_sid + 1
     _BAKE_CACHE[key] = baked
     while len(_BAKE_CACHE) > _BAKE_CACHE_SIZE:
         _BAKE_CACHE.pop(next(iter(_BAKE_CACHE)))

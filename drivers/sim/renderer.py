@@ -38,9 +38,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from drivers.sim.lighting import MIP_LEVELS, Baked, bake
-from drivers.sim.world import World, load_world
+from drivers.sim.visibility import cell_sets, oriented_portals, visible_cells
+from drivers.sim.world import Geometry, World, load_world
 
 _BIG = np.float32(1e4)
+# surface marks of a world with rooms: a floor or ceiling hit, cell not yet known
+_FLOOR, _CEILING = -10, -11
 
 
 class CameraModel(BaseModel):
@@ -118,10 +121,12 @@ class Renderer:
         scene_changes: tuple[str, ...] | list[str] = (),
         seed: int = 0,
         texel: float = 0.01,
+        cull: bool = True,
     ) -> None:
         self.world = load_world(world) if isinstance(world, str) else world
         self.camera = camera if camera is not None else CameraModel()
         self.texel = texel
+        self.cull = bool(cull)
         self._rng = np.random.default_rng(seed)
         self._rays: dict[float, _Rays] = {}
         self._noise_buf: np.ndarray | None = None
@@ -184,6 +189,33 @@ class Renderer:
             "cols": b.cols.astype(np.int32), "rows": b.rows.astype(np.int32), "offset": b.offset.astype(np.int32),
         }
         self._fc_cache: dict = {}
+        self._load_rooms(geo)
+
+    def _load_rooms(self, geo: Geometry) -> None:
+        """Cells, portals and per-cell wall and box sets of a world with rooms (else None)."""
+        self._layout = geo.layout
+        if self._layout is None:
+            return
+        lay = self._layout
+        self._ports = oriented_portals(lay)
+        self._sets = cell_sets(lay, len(geo.walls) - len(lay.walls), geo.boxes)
+        self._rects = lay.rects
+        self._all_cells = np.arange(len(lay.cells))
+        self._cell_floor = self.baked.cell_floor_sid.astype(np.int32)
+        self._cell_ceiling = self.baked.cell_ceiling_sid.astype(np.int32)
+
+    def _selection(self, ox: float, oy: float, phi: float, rays: _Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cells, walls and boxes a world with rooms traces for a view from (ox, oy): with culling
+        the cells :func:`visible_cells` finds, else (or from outside every cell) all of them."""
+        cells = None
+        if self.cull:
+            a0, a1 = float(rays.az_samples.min()), float(rays.az_samples.max())
+            cells = visible_cells(self._layout, ox, oy, phi + a0, phi + a1, self._ports)
+        if cells is None:
+            cells = self._all_cells
+            return cells, np.arange(len(self._w0)), np.arange(len(self._box))
+        walls, boxes = self._sets.union(cells)
+        return cells, walls, boxes
 
     # -- rays -------------------------------------------------------------------------
     def _rays_for(self, tilt: float) -> _Rays:
@@ -228,21 +260,28 @@ class Renderer:
         return rays
 
     # -- 2D casting ---------------------------------------------------------------------
-    def _cast(self, ox: float, oy: float, phi: float, rays: _Rays) -> tuple[np.ndarray, ...]:
+    def _cast(self, ox: float, oy: float, phi: float, rays: _Rays,
+              sel: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, ...]:
         """Candidates per azimuth sample, sorted by entry range: (r_in, r_out, zlo, zhi,
-        front sid, top sid, bottom sid), each (K, A) so that row j is the j-th nearest."""
+        front sid, top sid, bottom sid), each (K, A) so that row j is the j-th nearest.
+
+        ``sel``: (wall indices, box indices), sorted, to trace instead of all (a world with
+        rooms); candidates at equal range then keep the order of their indices (a stable sort),
+        so that any selection containing every wall and box a ray meets gives the same result."""
         az = phi + rays.az_samples
         c, s = np.cos(az)[:, None], np.sin(az)[:, None]
+        w0, we = (self._w0, self._we) if sel is None else (self._w0[sel[0]], self._we[sel[0]])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            ex, ey = self._we[None, :, 0], self._we[None, :, 1]
-            wx, wy = self._w0[None, :, 0] - ox, self._w0[None, :, 1] - oy
+            ex, ey = we[None, :, 0], we[None, :, 1]
+            wx, wy = w0[None, :, 0] - ox, w0[None, :, 1] - oy
             den = c * ey - s * ex
             r = (wx * ey - wy * ex) / den
             t = (wx * s - wy * c) / den
             rw = np.where((r > 1e-6) & (t >= -1e-9) & (t <= 1 + 1e-9), r, np.inf)
             first_wall = rw.min(axis=1, initial=np.inf)
-            wsid = np.broadcast_to(self.baked.wall_sid[None, :], rw.shape)
-            keep = self._visible_boxes(ox, oy, phi, rays)
+            wall_sid = self.baked.wall_sid if sel is None else self.baked.wall_sid[sel[0]]
+            wsid = np.broadcast_to(wall_sid[None, :], rw.shape)
+            keep = self._visible_boxes(ox, oy, phi, rays, None if sel is None else sel[1])
             if keep.size:
                 bx = self._box[keep]
                 cb, sb = bx[None, :, 2], bx[None, :, 3]
@@ -268,14 +307,17 @@ class Renderer:
                 r_in = np.concatenate([rw, rin], axis=1)
                 r_out = np.concatenate([rw, np.where(hit, rout, np.inf)], axis=1)
                 fsid = np.concatenate([wsid, bsid], axis=1)
-                obj = np.concatenate([np.arange(len(self._w0)), len(self._w0) + keep])
+                wobj = np.arange(len(self._w0)) if sel is None else sel[0]
+                obj = np.concatenate([wobj, len(self._w0) + keep])
             else:
                 r_in, r_out, fsid = rw, rw, wsid
-                obj = np.arange(len(self._w0))
+                obj = np.arange(len(self._w0)) if sel is None else sel[0]
         r_in[r_in > first_wall[:, None] + 1e-6] = np.inf
         k = max(1, int(np.isfinite(r_in).sum(axis=1).max()))
         n_obj = r_in.shape[1]
-        if k < n_obj:
+        if self._layout is not None:
+            order = np.argsort(r_in, axis=1, kind="stable")[:, :k]
+        elif k < n_obj:
             order = np.argpartition(r_in, k - 1, axis=1)[:, :k]
             sub = np.take_along_axis(r_in, order, 1)
             order = np.take_along_axis(order, np.argsort(sub, axis=1), 1)
@@ -294,24 +336,33 @@ class Renderer:
             self._bot_sid.take(order_t),
         )
 
-    def _visible_boxes(self, ox: float, oy: float, phi: float, rays: _Rays) -> np.ndarray:
-        """Indices of the boxes whose bounding circle overlaps the view's azimuth range."""
-        if not len(self._box):
+    def _visible_boxes(self, ox: float, oy: float, phi: float, rays: _Rays,
+                       among: np.ndarray | None = None) -> np.ndarray:
+        """Indices of the boxes (of ``among``, default all) whose bounding circle overlaps the
+        view's azimuth range."""
+        if among is not None:
+            if not among.size:
+                return np.zeros(0, np.int64)
+            box, radius = self._box[among], self._box_radius[among]
+        else:
+            box, radius = self._box, self._box_radius
+        if not len(box):
             return np.zeros(0, np.int64)
-        dx = self._box[:, 0] - ox
-        dy = self._box[:, 1] - oy
+        dx = box[:, 0] - ox
+        dy = box[:, 1] - oy
         dist = np.hypot(dx, dy)
-        rad = self._box_radius
+        rad = radius
         a0, a1 = float(rays.az_samples.min()), float(rays.az_samples.max())
         mid, half = phi + 0.5 * (a0 + a1), 0.5 * (a1 - a0)
         if half >= math.pi - 1e-3:
-            return np.arange(len(self._box))
+            keep = np.arange(len(box))
+            return keep if among is None else among[keep]
         bearing = np.arctan2(dy, dx) - mid
         bearing = (bearing + math.pi) % (2 * math.pi) - math.pi
         with np.errstate(invalid="ignore"):
             ang = np.arcsin(np.minimum(rad / np.maximum(dist, 1e-9), 1.0))
         keep = (dist <= rad) | (np.abs(bearing) <= half + ang + 1e-3)
-        return np.flatnonzero(keep)
+        return np.flatnonzero(keep) if among is None else among[np.flatnonzero(keep)]
 
     def _floor_ceiling(self, rays: _Rays, hcam: float) -> tuple[np.ndarray, np.ndarray]:
         key = (id(rays), round(hcam, 9))
@@ -321,7 +372,10 @@ class Renderer:
             with np.errstate(divide="ignore", invalid="ignore"):
                 r = np.where(s < 0, -hcam / s, np.where(s > 0, (float(self._hc) - hcam) / s, float(_BIG)))
             r = np.minimum(r, float(_BIG)).astype(np.float32)
-            sid = np.where(s < 0, self.baked.floor_sid, self.baked.ceiling_sid).astype(np.int32)
+            if self._layout is None:
+                sid = np.where(s < 0, self.baked.floor_sid, self.baked.ceiling_sid).astype(np.int32)
+            else:  # marks: the cell of the hit point decides (_room_floor_ceiling)
+                sid = np.where(s < 0, _FLOOR, _CEILING).astype(np.int32)
             got = (r, sid)
             if len(self._fc_cache) > 16:
                 self._fc_cache.clear()
@@ -331,7 +385,12 @@ class Renderer:
     # -- per-view radiance --------------------------------------------------------------
     def _radiance(self, ox: float, oy: float, hcam: float, phi: float, rays: _Rays) -> tuple[np.ndarray, np.ndarray]:
         """Radiance (float32, P) and depth Z (float32, P) for a camera at (ox, oy, hcam), heading phi."""
-        r_in, r_out, zlo, zhi, fsid, tsid, bsid = self._cast(ox, oy, phi, rays)
+        cells = None
+        if self._layout is not None:
+            cells, walls, boxes = self._selection(ox, oy, phi, rays)
+            r_in, r_out, zlo, zhi, fsid, tsid, bsid = self._cast(ox, oy, phi, rays, (walls, boxes))
+        else:
+            r_in, r_out, zlo, zhi, fsid, tsid, bsid = self._cast(ox, oy, phi, rays)
         k = r_in.shape[0]
         s = rays.slope
         h = np.float32(hcam)
@@ -396,7 +455,30 @@ class Renderer:
                     case = np.int32(n_az) * (tp.view(np.int8) + 2 * bot[gi].view(np.int8))
                     sid[g] = sid3[j].take(pidx[gi] + case)
                 todo = todo[np.flatnonzero(near & ~got)]
+        if cells is not None:
+            sid = self._room_floor_ceiling(ox, oy, phi, rays, r_hit, sid, cells)
         return self._shade(ox, oy, h, phi, rays, r_hit, sid)
+
+    def _room_floor_ceiling(self, ox: float, oy: float, phi: float, rays: _Rays, r_hit: np.ndarray,
+                            sid: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """In a world with rooms every cell has its own floor and ceiling: the pixels that end on
+        the floor or ceiling (``_FLOOR``/``_CEILING`` marks) get the surface of the cell of
+        ``cells`` nearest their hit point (distance 0 inside; ties: the lowest cell index)."""
+        fl = sid == _FLOOR
+        idx = np.flatnonzero(fl | (sid == _CEILING))
+        if not idx.size:
+            return sid
+        cphi, sphi = np.float32(math.cos(phi)), np.float32(math.sin(phi))
+        ca, sa, r = rays.ca[idx], rays.sa[idx], r_hit[idx]
+        x = np.float32(ox) + r * (cphi * ca - sphi * sa)
+        y = np.float32(oy) + r * (sphi * ca + cphi * sa)
+        rc = self._rects[cells].astype(np.float32)
+        dx = np.maximum(np.maximum(rc[None, :, 0] - x[:, None], x[:, None] - rc[None, :, 1]), 0.0)
+        dy = np.maximum(np.maximum(rc[None, :, 2] - y[:, None], y[:, None] - rc[None, :, 3]), 0.0)
+        cell = cells[np.argmin(dx * dx + dy * dy, axis=1)]
+        out = sid.copy()
+        out[idx] = np.where(fl[idx], self._cell_floor[cell], self._cell_ceiling[cell])
+        return out
 
     def _shade(self, ox: float, oy: float, h: np.float32, phi: float, rays: _Rays, r_hit: np.ndarray,
                sid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,12 @@ A world file (``config/worlds/<name>.json``) describes one floor of a building:
   identical pieces, which is what makes single views ambiguous;
 - ``lighting``: one setup per name (``tube``, ``bulb``, ``natural``) with its light sources;
 - ``scene_changes``: named sets that add, move or remove furniture (``boxes``,
-  ``moved_furniture``, ``people``), unknown to the map.
+  ``moved_furniture``, ``people``), unknown to the map;
+- ``survey`` (optional): the default grid of ``lino-loc survey`` (``step``, ``heading_step_deg``);
+- ``rooms`` and ``openings`` (optional, then ``walls`` stays empty): a floor of several
+  rooms, each with its own wall, floor and ceiling textures, joined by doorways; their walls,
+  door jambs and lintels are generated (:mod:`drivers.sim.rooms`), and the renderer and the
+  light bake cull what one room cannot see of the others (:mod:`drivers.sim.visibility`).
 
 :func:`load_world` validates the file with pydantic; any mistake raises
 :class:`lino_loc.errors.LinoLocError` naming the file and the field. :class:`World` resolves
@@ -33,91 +38,29 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from drivers.sim.config_files import WORLDS_DIR
+from drivers.sim.rooms import Layout, Opening, Room, build_layout
+from drivers.sim.world_parts import (
+    Box,
+    BoxSpec,
+    Decal,
+    Rect,
+    TextureSpec,
+    Vec2,
+    Vec3,
+    Wall,
+    Window,
+    _Model,
+)
 from lino_loc.errors import LinoLocError
 
-Vec2 = tuple[float, float]
-Vec3 = tuple[float, float, float]
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class TextureSpec(_Model):
-    """A procedural albedo texture. ``kind`` selects the generator; the other fields tune it.
-
-    Two specs with the same fields produce bit-identical textures (the ``seed`` is part of
-    the spec), so repeated elements are identical.
-    """
-
-    kind: Literal[
-        "paint", "wood", "poster", "door", "tiles", "carpet", "curtain", "window_view",
-        "bookshelf", "whiteboard", "ceiling_tiles", "fabric", "cardboard", "metal", "fixture",
-    ]
-    albedo: float = Field(0.6, ge=0.0, le=1.0)
-    albedo2: float | None = Field(None, ge=0.0, le=1.0)
-    contrast: float = Field(0.1, ge=0.0, le=1.0)
-    period: float = Field(0.3, gt=0.0)
-    seed: int = 0
-
-
-class Decal(_Model):
-    """A flat rectangle painted on a wall: ``u`` along the wall from its start, ``z`` above the floor."""
-
-    texture: str
-    u: float
-    z: float = 0.0
-    width: float = Field(gt=0.0)
-    height: float = Field(gt=0.0)
-
-
-class Window(_Model):
-    """A window in a wall: curtains (``curtain`` texture) or, when open, the ``view`` (emissive)."""
-
-    u: float
-    z: float = 0.9
-    width: float = Field(gt=0.0)
-    height: float = Field(gt=0.0)
-    curtain: str
-    view: str
-
-
-class Wall(_Model):
-    id: str = ""
-    start: Vec2
-    end: Vec2
-    texture: str
-    decals: tuple[Decal, ...] = ()
-    windows: tuple[Window, ...] = ()
-
-    @model_validator(mode="after")
-    def _length(self) -> Wall:
-        if math.dist(self.start, self.end) < 1e-3:
-            raise ValueError("wall has zero length")
-        return self
-
-
-class BoxSpec(_Model):
-    """A box in the local frame of its piece of furniture. Faces: +x local is the ``front``."""
-
-    center: Vec2 = (0.0, 0.0)
-    size: Vec2
-    yaw_deg: float = 0.0
-    zmin: float = Field(0.0, ge=0.0)
-    zmax: float
-    texture: str
-    faces: dict[Literal["front", "back", "left", "right", "top", "bottom"], str] = {}
-
-    @model_validator(mode="after")
-    def _sizes(self) -> BoxSpec:
-        if self.size[0] <= 0 or self.size[1] <= 0:
-            raise ValueError("box size must be positive")
-        if self.zmax <= self.zmin:
-            raise ValueError("box zmax must be above zmin")
-        return self
+__all__ = [
+    "WORLDS_DIR", "Box", "BoxSpec", "Decal", "Furniture", "Geometry", "Light", "LightingSetup", "Opening",
+    "Rect", "Room", "SceneChange", "SurveyGrid", "TextureSpec", "Vec2", "Vec3", "Wall", "Window", "World", "WorldSpec",
+    "grid_poses", "load_world",
+]
 
 
 class Furniture(_Model):
@@ -187,20 +130,11 @@ class SceneChange(_Model):
     remove: tuple[str, ...] = ()
 
 
-class Rect(_Model):
-    xmin: float
-    xmax: float
-    ymin: float
-    ymax: float
+class SurveyGrid(_Model):
+    """The world's default survey grid (``lino-loc survey`` without ``--step``/``--heading-step``)."""
 
-    @model_validator(mode="after")
-    def _order(self) -> Rect:
-        if self.xmax <= self.xmin or self.ymax <= self.ymin:
-            raise ValueError("need xmin < xmax and ymin < ymax")
-        return self
-
-    def as_tuple(self) -> tuple[float, float, float, float]:
-        return (self.xmin, self.xmax, self.ymin, self.ymax)
+    step: float = Field(gt=0.0)
+    heading_step_deg: float = Field(gt=0.0, le=360.0)
 
 
 class WorldSpec(_Model):
@@ -217,6 +151,9 @@ class WorldSpec(_Model):
     furniture: tuple[Furniture, ...] = ()
     lighting: dict[str, LightingSetup]
     scene_changes: dict[str, SceneChange] = {}
+    rooms: tuple[Room, ...] = ()
+    openings: tuple[Opening, ...] = ()
+    survey: SurveyGrid | None = None
 
     @model_validator(mode="after")
     def _references(self) -> WorldSpec:
@@ -264,29 +201,39 @@ class WorldSpec(_Model):
                     raise ValueError(f"scene_changes.{name}: unknown furniture id '{fid}'")
         if not self.lighting:
             raise ValueError("lighting: at least one setup is needed")
+        self._check_rooms(need)
         return self
 
-
-@dataclass(frozen=True)
-class Box:
-    """A resolved box in the map frame (footprint centre, half sizes, yaw; z range)."""
-
-    owner: str
-    cx: float
-    cy: float
-    hx: float
-    hy: float
-    yaw: float
-    zmin: float
-    zmax: float
-    spec: BoxSpec
-
-    def corners(self) -> np.ndarray:
-        """Footprint corners (4, 2), counter-clockwise."""
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        local = np.array([[-self.hx, -self.hy], [self.hx, -self.hy], [self.hx, self.hy], [-self.hx, self.hy]])
-        rot = np.array([[c, -s], [s, c]])
-        return local @ rot.T + np.array([self.cx, self.cy])
+    def _check_rooms(self, need: Any) -> None:
+        """Rooms and openings: textures known, rooms inside ``room``, a consistent layout."""
+        if self.openings and not self.rooms:
+            raise ValueError("openings: need rooms")
+        if not self.rooms:
+            return
+        if self.walls:
+            raise ValueError("walls: a world with rooms takes its walls from its rooms (leave walls empty)")
+        xmin, xmax, ymin, ymax = self.room.as_tuple()
+        for i, r in enumerate(self.rooms):
+            for name, t in (("wall_texture", r.wall_texture), ("floor_texture", r.floor_texture),
+                            ("ceiling_texture", r.ceiling_texture)):
+                if t is not None:
+                    need(t, f"rooms.{i}.{name}")
+            for side, rs in r.sides.items():
+                where = f"rooms.{i}.sides.{side}"
+                if rs.texture is not None:
+                    need(rs.texture, f"{where}.texture")
+                for j, d in enumerate(rs.decals):
+                    need(d.texture, f"{where}.decals.{j}.texture")
+                for j, win in enumerate(rs.windows):
+                    need(win.curtain, f"{where}.windows.{j}.curtain")
+                    need(win.view, f"{where}.windows.{j}.view")
+            q = r.rect
+            if q.xmin < xmin - 1e-9 or q.xmax > xmax + 1e-9 or q.ymin < ymin - 1e-9 or q.ymax > ymax + 1e-9:
+                raise ValueError(f"rooms.{i}.rect: room '{r.id}' is not inside 'room'")
+        for k, op in enumerate(self.openings):
+            if op.texture is not None:
+                need(op.texture, f"openings.{k}.texture")
+        build_layout(self.rooms, self.openings, self.ceiling_height, self.floor_texture, self.ceiling_texture)
 
 
 @dataclass(frozen=True)
@@ -296,6 +243,7 @@ class Geometry:
     walls: tuple[Wall, ...]
     boxes: tuple[Box, ...]
     changes: tuple[str, ...]
+    layout: Layout | None = None
 
 
 class World:
@@ -312,7 +260,9 @@ class World:
         """SHA-1 of the validated world content (keys the bake cache)."""
         fp = getattr(self, "_fingerprint", None)
         if fp is None:
-            fp = hashlib.sha1(self.spec.model_dump_json().encode()).hexdigest()
+            # a world without rooms hashes as before rooms existed (caches stay valid)
+            empty = {k for k in ("rooms", "openings", "survey") if not getattr(self.spec, k)}
+            fp = hashlib.sha1(self.spec.model_dump_json(exclude=empty).encode()).hexdigest()
             self._fingerprint = fp
         return fp
 
@@ -329,6 +279,19 @@ class World:
     def room(self) -> tuple[float, float, float, float]:
         """(xmin, xmax, ymin, ymax) of the room's floor, metres."""
         return self.spec.room.as_tuple()
+
+    @property
+    def layout(self) -> Layout | None:
+        """Cells, portals, walls and lintels of the world's rooms (:mod:`drivers.sim.rooms`);
+        None for a world without rooms."""
+        if not self.spec.rooms:
+            return None
+        lay = getattr(self, "_layout", None)
+        if lay is None:
+            sp = self.spec
+            lay = build_layout(sp.rooms, sp.openings, sp.ceiling_height, sp.floor_texture, sp.ceiling_texture)
+            self._layout = lay
+        return lay
 
     @property
     def lighting_names(self) -> tuple[str, ...]:
@@ -392,7 +355,12 @@ class World:
                         spec=b,
                     )
                 )
-        geo = Geometry(walls=self.spec.walls, boxes=tuple(boxes), changes=key)
+        lay = self.layout
+        if lay is None:
+            geo = Geometry(walls=self.spec.walls, boxes=tuple(boxes), changes=key)
+        else:
+            geo = Geometry(walls=self.spec.walls + lay.walls, boxes=tuple(boxes) + lay.lintels, changes=key,
+                           layout=lay)
         self._geometry[key] = geo
         return geo
 

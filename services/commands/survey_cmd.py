@@ -6,7 +6,8 @@
                     [--overwrite] [--json]
 
 Poses: every ``--step`` metres over the world's mapped area and every ``--heading-step``
-DEGREES, skipping poses where the robot (radius ``--radius``) would touch furniture or
+DEGREES (defaults: the world file's ``survey`` grid, e.g. the floor's 0.5 m and 10 deg, the
+lab's spacing, 116,964 views; else 0.75 m and 15 deg), skipping poses where the robot (radius ``--radius``) would touch furniture or
 walls; the same poses under every lighting. With stereo (the default) every row has the
 right image and the sparse disparity of the product's block matcher, as on the robot; the
 renderer's exact dense depth instead only with ``--dense-depth``. See :mod:`drivers.sim.survey`.
@@ -29,6 +30,10 @@ from lino_loc.errors import LinoLocError
 from services.commands.robot_survey_cmd import add_robot_arguments
 from services.progress import Progress
 
+#: Survey grid of a world whose file names none (``survey``): the office's of the paper.
+DEFAULT_STEP_M = 0.75
+DEFAULT_HEADING_STEP_DEG = 15.0
+
 
 def _changes(text: str) -> tuple[str, ...]:
     return tuple(c.strip() for c in text.split(",") if c.strip())
@@ -38,12 +43,20 @@ def _run(args: argparse.Namespace) -> int:
     if args.robot:
         from services.commands.robot_survey_cmd import run_robot_survey
 
+        if args.heading_step is None:
+            args.heading_step = DEFAULT_HEADING_STEP_DEG
+
         return run_robot_survey(args)
-    if args.step <= 0 or args.heading_step <= 0:
-        raise LinoLocError("--step and --heading-step must be positive")
     if args.width < 8 or args.height < 8:
         raise LinoLocError("--width and --height must be at least 8 pixels")
     world = load_world(args.world)
+    grid = world.spec.survey
+    if args.step is None:
+        args.step = grid.step if grid is not None else DEFAULT_STEP_M
+    if args.heading_step is None:
+        args.heading_step = grid.heading_step_deg if grid is not None else DEFAULT_HEADING_STEP_DEG
+    if args.step <= 0 or args.heading_step <= 0:
+        raise LinoLocError("--step and --heading-step must be positive")
     camera = CameraModel(width=args.width, height=args.height)
     bar = Progress(f"survey {world.name}/{args.lighting}")
     try:
@@ -80,8 +93,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "block matcher's sparse disparity; the renderer's dense depth instead with --dense-depth).",
     )
     p.add_argument("--world", default="office", help="world name (config/worlds/NAME.json) or path")
-    p.add_argument("--step", type=float, default=0.75, help="grid step in metres (default 0.75)")
-    p.add_argument("--heading-step", type=float, default=15.0, help="heading step in DEGREES (default 15)")
+    p.add_argument("--step", type=float, default=None,
+                   help=f"grid step in metres (default: the world file's survey grid, else {DEFAULT_STEP_M})")
+    p.add_argument("--heading-step", type=float, default=None,
+                   help="heading step in DEGREES (default: the world file's survey grid, else "
+                        f"{DEFAULT_HEADING_STEP_DEG:g})")
     p.add_argument("--out", required=True, help="dataset folder to write")
     p.add_argument("--lighting", default="tube", help="lighting setup: tube (mapping), bulb, natural")
     p.add_argument("--scene-changes", type=_changes, default=(), help="comma-separated scene change sets")

@@ -104,7 +104,10 @@ def _global(args: argparse.Namespace) -> int:
 
     if args.starts < 1 or args.updates < 1:
         raise LinoLocError("--starts and --updates must be at least 1")
-    setup = GlobalSetup(world=args.world, features=args.features, preprocess=args.preprocess,
+    if args.step <= 0 or args.heading_step <= 0:
+        raise LinoLocError("--step and --heading-step must be positive")
+    setup = GlobalSetup(world=args.world, step=args.step, heading_step_deg=args.heading_step,
+                        features=args.features, preprocess=args.preprocess,
                         starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
                         j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
                         channels=parse_channels(args.channels), sensor_model=args.sensor_model)
@@ -236,6 +239,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--updates", type=int, default=30, help="updates per run")
     p.add_argument("--rate", type=float, default=2.0, help="camera frames (updates) per second while driving")
     p.add_argument("--features", type=int, default=5, help="PCA features (section 6.1: 5)")
+    p.add_argument("--step", type=float, default=0.75, help="map grid step, metres (section 6.1: 0.75)")
+    p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees (section 6.1: 15)")
     p.add_argument("--preprocess", default="none", choices=PREPROCESS_METHODS)
     p.add_argument("--particles", type=int, default=None, help="default: the localizer configuration's")
     p.add_argument("--j", type=int, default=None, help="nearest map entries J (default: configuration's)")
