@@ -1122,25 +1122,10 @@ def build_map(
     virtual = virtual_setup(dataset.meta.camera, (w, h), virtual_offsets)  # checked before any image is read
     ds = _map_rows(dataset, condition, n_features, (w, h))
     _check_poses(ds)
-    unknown = [c for c in channels if c not in ("intensity", "disparity")]
-    if unknown or "intensity" not in channels:
-        raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
-    if engine == "dask":
-        if method != "randomized":
-            raise LinoLocError(f"map build: the dask engine computes the randomized PCA only, got method {method!r}")
-        from lino_loc.pca_dask import intensity_pca_dask
-
-        pca, Y, total = intensity_pca_dask(ds, n_features, preprocess, (w, h), seed=seed, virtual=virtual,
-                                           chunk_rows=chunk_rows)
-        intensity = ChannelMap(name="intensity", preprocess=preprocess, size=(w, h), pca=pca, features=Y,
-                               method=method,
-                               params={"total_variance": total, "seed": seed, **(virtual.params() if virtual else {})})
-    elif engine == "local":
-        intensity = build_intensity_channel(ds, n_features, preprocess, (w, h), progress, method=method, seed=seed,
-                                            workers=workers, virtual=virtual, memory_budget_mb=memory_budget_mb,
-                                            scratch_dir=scratch_dir, chunk_rows=chunk_rows)
-    else:
-        raise LinoLocError(f"map build: unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
+    _check_channels(channels)
+    intensity = _intensity_by_engine(engine, ds, n_features, preprocess, (w, h), progress, method=method, seed=seed,
+                                     workers=workers, virtual=virtual, memory_budget_mb=memory_budget_mb,
+                                     scratch_dir=scratch_dir, chunk_rows=chunk_rows)
     chans: dict[str, ChannelMap] = {"intensity": intensity}
     if "disparity" in channels:
         chans["disparity"] = build_disparity_channel(ds, disparity_features or n_features, (w, h), progress,
@@ -1153,6 +1138,46 @@ def build_map(
         name=ds.meta.name,
         condition=condition,
     )
+
+
+def _check_channels(channels: Sequence[str]) -> None:
+    """LinoLocError unless ``channels`` is intensity, optionally with disparity."""
+    unknown = [c for c in channels if c not in ("intensity", "disparity")]
+    if unknown or "intensity" not in channels:
+        raise LinoLocError(f"map channels must include 'intensity' and may add 'disparity', got {list(channels)}")
+
+def _intensity_by_engine(
+    engine: str,
+    ds: Dataset,
+    n_features: int,
+    preprocess: Preprocess,
+    size: tuple[int, int],
+    progress: ProgressFn | None,
+    *,
+    method: PcaMethod,
+    seed: int,
+    workers: int | None,
+    virtual: VirtualHeadings | None,
+    memory_budget_mb: float,
+    scratch_dir: Path | str | None,
+    chunk_rows: int | None,
+) -> ChannelMap:
+    """The intensity channel built by ``engine`` (see :func:`build_map`); LinoLocError for an
+    unknown engine or a PCA method the dask engine does not compute."""
+    if engine == "local":
+        return build_intensity_channel(ds, n_features, preprocess, size, progress, method=method, seed=seed,
+                                       workers=workers, virtual=virtual, memory_budget_mb=memory_budget_mb,
+                                       scratch_dir=scratch_dir, chunk_rows=chunk_rows)
+    if engine != "dask":
+        raise LinoLocError(f"map build: unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
+    if method != "randomized":
+        raise LinoLocError(f"map build: the dask engine computes the randomized PCA only, got method {method!r}")
+    from lino_loc.pca_dask import intensity_pca_dask
+
+    pca, Y, total = intensity_pca_dask(ds, n_features, preprocess, size, seed=seed, virtual=virtual,
+                                       chunk_rows=chunk_rows)
+    return ChannelMap(name="intensity", preprocess=preprocess, size=size, pca=pca, features=Y, method=method,
+                      params={"total_variance": total, "seed": seed, **(virtual.params() if virtual else {})})
 
 
 def _checked_map_settings(
