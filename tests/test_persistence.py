@@ -240,9 +240,14 @@ def test_kill_9_during_saves_leaves_no_temp_file_after_a_restart(tmp_path: Path)
         "while True: save_state(sys.argv[1], s)\n"
     )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    for _ in range(5):
+    for i in range(5):
+        before = target.stat().st_mtime_ns if target.exists() else None
         p = subprocess.Popen([sys.executable, "-c", code, str(target)], env=env)
-        time.sleep(1.0)
+        # killed once it is saving (its imports alone can take seconds on a loaded machine)
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and (not target.exists() or target.stat().st_mtime_ns == before):
+            time.sleep(0.01)
+        time.sleep(0.05 * i)
         p.send_signal(signal.SIGKILL)
         p.wait(5)
     remove_stale_temps(target)
