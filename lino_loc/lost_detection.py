@@ -168,13 +168,17 @@ def view_share(
     if not bool(finite.any()):
         return math.nan
     w = np.exp(lw[finite] - float(lw[finite].max()))
-    c = np.asarray(camera_pose, dtype=np.float64).reshape(3)
-    q = p[finite]
-    dth = np.abs(wrap_angle(q[:, 2] - c[2]))
-    near = (np.hypot(q[:, 0] - c[0], q[:, 1] - c[1]) <= CONFIRM_RADIUS_XY) & (
-        dth <= CONFIRM_RADIUS_THETA
-    )
+    near = near_pose(p[finite], camera_pose)
     return float(w[near].sum() / w.sum())
+
+
+def near_pose(poses: ArrayLike, pose: ArrayLike) -> np.ndarray:
+    """Which of ``poses`` (n, 3) lie within :data:`CONFIRM_RADIUS_XY` in position and
+    :data:`CONFIRM_RADIUS_THETA` in heading (wrapped) of ``pose`` (3,): (n,) bool."""
+    q = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    c = np.asarray(pose, dtype=np.float64).reshape(3)
+    dth = np.abs(wrap_angle(q[:, 2] - c[2]))
+    return (np.hypot(q[:, 0] - c[0], q[:, 1] - c[1]) <= CONFIRM_RADIUS_XY) & (dth <= CONFIRM_RADIUS_THETA)
 
 
 @dataclass

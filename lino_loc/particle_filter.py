@@ -70,6 +70,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from lino_loc.apf import StepResult, apf_step
 from lino_loc.appearance_change import AppearanceChangeConfig, AppearanceChangeDetector
+from lino_loc.belief_challenge import BeliefChallenge, ChallengeConfig
 from lino_loc.channel_agreement import overlap
 from lino_loc.errors import LinoLocError
 from lino_loc.kidnap_recovery import KidnapRecovery, RecoveryConfig, Verdict, outlier_floor
@@ -78,6 +79,7 @@ from lino_loc.lost_detection import (
     LostConfig,
     LostDetector,
     independent_views,
+    near_pose,
     view_share,
     viewed_increment,
 )
@@ -227,6 +229,7 @@ class FilterConfig(BaseModel):
     )
     seed: int | None = None
     lost: LostConfig = Field(default_factory=LostConfig)
+    challenge: ChallengeConfig = Field(default_factory=ChallengeConfig)
     recovery: RecoveryConfig = Field(default_factory=RecoveryConfig)
     appearance_change: AppearanceChangeConfig = Field(default_factory=AppearanceChangeConfig)
     view_fit: ViewFitConfig = Field(default_factory=ViewFitConfig)
@@ -266,6 +269,7 @@ class AuxiliaryParticleFilter:
         self.lost_detector = LostDetector(c.lost)
         self.view_fit = ViewFit(c.view_fit)
         self.recovery = KidnapRecovery(c.recovery, motion_model, self._resample)
+        self.challenge = BeliefChallenge(c.challenge, motion_model, self._resample)
         self.appearance_watch = AppearanceChangeDetector() if c.appearance_change.enabled else None
         self.injected = 0  # particles injected or drawn as candidates by the last update
         self._last_pan: float | None = None  # the head's pan at the last observation
@@ -334,6 +338,7 @@ class AuxiliaryParticleFilter:
         self.injected = 0
         self._recall_run: float | None = None  # hit views in a row of an unconfirmed recalled pose
         self.recovery.reset()
+        self.challenge.reset()
         self.lost_detector.reset()
         self.view_fit.reset()
 
@@ -384,6 +389,7 @@ class AuxiliaryParticleFilter:
         self.converged_once = True
         self._belief_converged = True
         self.lost_detector.confirm()  # a given pose needs no confirmation by the views
+        self.challenge.waive()
         self.view_fit.trust()
         self._state = "tracking"
 
@@ -396,6 +402,7 @@ class AuxiliaryParticleFilter:
         lw = np.zeros(p.shape[0]) if log_weights is None else log_weights
         self._assign(p, Weights.from_log(lw, one_pass=False))
         self.recovery.forget_evidence()  # a candidate set tested against the old belief is void
+        self.challenge.reset()
         self._uniform_prior = False
 
     # ----------------------------------------------------------------- update
@@ -420,6 +427,7 @@ class AuxiliaryParticleFilter:
         d = np.asarray(delta, dtype=np.float64).reshape(3)
         self._assign(self.motion.sample(self._particles, d, self.rng), self._weights)
         self.recovery.predict(d, self.rng)
+        self.challenge.predict(d, self.rng)
 
     def update(self, delta: ArrayLike, pan: float, mixture: PoseMixture | None,
                rng: np.random.Generator | None = None) -> float:
@@ -440,8 +448,8 @@ class AuxiliaryParticleFilter:
         loglik, ll = self._predict_and_weight(d, pan, mixture)
         self._watch_appearance(mixture, d)
         floor = outlier_floor(mixture)
-        self._test_lost(ll, floor, viewed_increment(d, pan_change), mixture, pan)
-        self._recover(ll, floor, d, loglik, mixture, pan)
+        views = self._test_lost(ll, floor, viewed_increment(d, pan_change), mixture, pan)
+        self._recover(ll, floor, d, loglik, mixture, pan, views)
         self._resample_if_degenerate()
         self._update_state()
         return ll
@@ -490,14 +498,14 @@ class AuxiliaryParticleFilter:
 
     def _test_lost(
         self, ll: float, floor: float, d: FloatArray, mixture: PoseMixture, pan: float
-    ) -> None:
+    ) -> float:
         """Step 3: the lost test on the likelihood's excess over the outlier floor; the hit
         rate is learnt from trusted beliefs (tracking, or lost: slowly), not from a search.
         ``d`` is the increment whose views count (``lino_loc.lost_detection.
         viewed_increment``: the camera's, with the head's pan change, on a standing base; the
         odometry's on a driving one), so a standing robot whose head pans sees new views. For a recalled belief not yet confirmed, the run of
         hit views grows by this frame's independent views on a hit and restarts on a miss (a
-        frame where the camera did not move: neither)."""
+        frame where the camera did not move: neither). Returns the frame's independent views."""
         excess = ll - floor if math.isfinite(floor) else ll
         if self._recall_run is not None:
             v = independent_views(d)
@@ -510,8 +518,9 @@ class AuxiliaryParticleFilter:
         if self.config.lost.confirm_share > 0.0 and excess > HIT_NATS:
             share = self._view_share(mixture, pan)
         self.lost_detector.update(excess, d, learn=learn, share=share)
-        self.view_fit.update(self._channel_excess(mixture, excess, pan), independent_views(d), learn,
-                             self._channel_overlap(mixture))
+        views = independent_views(d)
+        self.view_fit.update(self._channel_excess(mixture, excess, pan), views, learn, self._channel_overlap(mixture))
+        return views
 
     def _view_share(self, mixture: PoseMixture, pan: float) -> float:
         """The view's kernel weight near the estimate's camera pose
@@ -565,8 +574,11 @@ class AuxiliaryParticleFilter:
         loglik: Callable[[FloatArray], FloatArray],
         mixture: PoseMixture,
         pan: float,
+        views: float,
     ) -> None:
-        """Step 4: kidnap recovery's verdict (``lino_loc.kidnap_recovery``), carried out."""
+        """Step 4: kidnap recovery's verdict (``lino_loc.kidnap_recovery``), carried out; then
+        a new belief's challenge by its rivals (:meth:`_challenge`; ``views``: the frame's
+        independent views)."""
         verdict = self.recovery.observe(
             ll,
             mixture.novelty,
@@ -579,6 +591,31 @@ class AuxiliaryParticleFilter:
             rng=self.rng,
         )
         self._carry_out(verdict, mixture, pan)
+        self._challenge(ll, floor, views, d, loglik, mixture, pan)
+
+    def _challenge(
+        self,
+        ll: float,
+        floor: float,
+        views: float,
+        d: FloatArray,
+        loglik: Callable[[FloatArray], FloatArray],
+        mixture: PoseMixture,
+        pan: float,
+    ) -> None:
+        """Step 4b: a new converged belief against its rivals (``lino_loc.belief_challenge``):
+        it is confirmed only once it out-scores them."""
+        if not self.challenge.active:
+            return
+        mean = self._dominant()[0]
+        adopted = self.challenge.observe(
+            ll, floor, views, delta=d, loglik=loglik, near=lambda x: near_pose(x, mean),
+            draw=lambda m: self.sample_from_mixture(mixture, pan, m), n=self.n, rng=self.rng,
+        )
+        if adopted is not None:
+            self.recovery.forget_evidence()
+            self.recovery.restart_averages()
+            self._carry_out(Verdict("adopt", 0, adopted), mixture, pan)
 
     def _carry_out(self, verdict: Verdict, mixture: PoseMixture, pan: float) -> None:
         """inject: resample the belief to equal weights (its softmax recomputed from the
@@ -595,6 +632,7 @@ class AuxiliaryParticleFilter:
             assert verdict.particles is not None
             self._assign(verdict.particles, Weights.uniform(verdict.particles.shape[0]))
             self._belief_converged = False  # a new belief: its convergence restarts the tests
+            self.challenge.reset()
             self._state = "global"
 
     def _resample_if_degenerate(self) -> None:
@@ -695,7 +733,7 @@ class AuxiliaryParticleFilter:
 
     def _update_state(self) -> None:
         """Step 6: the state from the dominant mode, the lost test and the confirmation."""
-        _, cov, mass = self._dominant()
+        mean, cov, mass = self._dominant()
         converged = self.config.estimate.converged(cov, mass)
         if self.converged_once and self.lost_detector.lost:
             self._state = "lost"
@@ -710,6 +748,7 @@ class AuxiliaryParticleFilter:
                 self.recovery.restart_averages()
                 self.lost_detector.new_belief()
                 self.view_fit.new_belief()
+                self.challenge.start(mean)
             self.converged_once = True
             # "tracking" once the views have confirmed the new belief; until then it is still
             # a search (a belief concentrated by one ambiguous image is often wrong)
@@ -719,6 +758,7 @@ class AuxiliaryParticleFilter:
         else:
             self._belief_converged = False
             self._recall_run = None if self._recall_run is None else 0.0
+            self.challenge.stop()
             self._state = "global"
 
     def _confirmed(self) -> bool:
@@ -727,7 +767,7 @@ class AuxiliaryParticleFilter:
         while converged."""
         if self._recall_run is not None and self._recall_run < RECALL_CONFIRM_VIEWS:
             return False
-        return self.lost_detector.confirmed
+        return self.lost_detector.confirmed and self.challenge.passed
 
     @property
     def state(self) -> State:
