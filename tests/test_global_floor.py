@@ -106,6 +106,11 @@ def test_the_active_head_turns_at_its_speed_and_frames_wait_for_it(floor2: str) 
     too_long = np.flatnonzero(step / setup.head_speed + settle > dt + 1e-9) + 1
     assert too_long.size and not out.used[too_long].any()
     assert out.used[0] and len(out.policy_ms) == 12 and len(out.update_ms) == out.used.sum()
+    # the action evaluator is built once per sensor configuration, and reusing it changes nothing
+    again = global_loc.run_start(inp, global_loc.localizer_config(setup, None), "active", 0)
+    assert len(inp.evaluators) == 1
+    np.testing.assert_array_equal(again.est, out.est)
+    np.testing.assert_array_equal(again.pans, out.pans)
 
 
 @pytest.mark.parametrize(("args", "message"), [
