@@ -33,6 +33,10 @@ def test_converged_update_is_the_start_of_the_last_run_of_successes() -> None:
     assert conv["converged_update"] == [2, 3, None]
     assert conv["converged_by_update"] == pytest.approx([0.0, 1 / 3, 2 / 3])
     assert conv["converge"] == {"share": pytest.approx(2 / 3), "median_updates": 2.5, "median_s": 1.25}
+    err = np.array([[3.0, 0.4, 0.6, 0.2], [0.1, 0.1, 0.1, 0.1], [0.2, 0.2, 0.2, 0.9]])
+    w = global_loc._within_step(err, step=0.5, rate=4.0)
+    assert w["update"] == [4, 1, None] and w["threshold_m"] == 0.5
+    assert w["share"] == pytest.approx(2 / 3) and w["median_updates"] == 2.5 and w["median_s"] == 0.625
 
 
 def test_the_head_turns_at_its_speed_and_stops_at_the_goal() -> None:
@@ -80,6 +84,9 @@ def test_both_cameras_run_paired_on_a_floor(floor2: str) -> None:
         assert len(r["success"]) == len(r["converged_by_update"]) == 8
         assert all(0.0 <= v <= 1.0 for v in r["success"] + r["converged_by_update"])
         assert r["converged_by_update"] == sorted(r["converged_by_update"])  # a share that only grows
+        w = r["converged_within_step"]
+        assert len(w["update"]) == len(r["final_error_m"]) == 2
+        assert all((u is None) == (e > 1.0) for u, e in zip(w["update"], r["final_error_m"], strict=True))
         assert len(r["start_cells"]) == 2 and all(c is None or c in cells or c.startswith("door") for c in
                                                   r["start_cells"])
     for fixed, active in ((runs[0], runs[1]), (runs[2], runs[3])):
