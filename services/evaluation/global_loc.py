@@ -84,6 +84,11 @@ HEAD_SPEED_RAD_S = 1.5
 
 @dataclass(frozen=True)
 class GlobalSetup:
+    """The evaluation's settings (module docstring): the world and its survey map, the starts
+    and updates, the camera (``fixed`` or ``active``, with the head's speed and the policy's
+    settings, the daemon's by default). LinoLocError on an unknown camera or a head speed not
+    above 0."""
+
     world: str = "office"
     step: float = 0.75
     heading_step_deg: float = 15.0
