@@ -108,8 +108,9 @@ class HnswIndex:
     @classmethod
     def build_or_load(cls, features: NDArray[Any], cache_dir: Path | None = None) -> HnswIndex:
         """The graph of ``features``, from ``cache_dir`` when a verified copy is there (see the
-        module docstring), else built (and then saved there when ``cache_dir`` is given). A
-        cache folder that cannot be written only logs a warning."""
+        module docstring), else built (and then saved there when ``cache_dir`` is given, the
+        folder made if missing). A cache folder that cannot be made or written only logs a
+        warning."""
         if cache_dir is None:
             return cls.build(features)
         key = features_key(features)
@@ -130,6 +131,7 @@ class HnswIndex:
             log.warning("%s: cached search graph does not match its map; rebuilding it", path)
         index = cls.build(features)
         try:
+            path.parent.mkdir(parents=True, exist_ok=True)
             index.save(path, digest)
         except OSError as exc:
             log.warning("%s: cannot cache the search graph (%s)", path, exc)

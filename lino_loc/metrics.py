@@ -45,13 +45,25 @@ def _grid_distances(
     return np.sqrt(dx * dx + dy * dy + dt * dt)
 
 
+#: Largest (rows x map poses) block of grid distances :func:`nearest_map_index` holds at once
+#: (float64 elements; a few temporaries of this size): 4M elements, 32 MB each, so that a
+#: floor's map (117k poses) against thousands of particles does not need gigabytes.
+NEAREST_BLOCK_ELEMENTS = 4_000_000
+
+
 def nearest_map_index(
     poses: ArrayLike, map_poses: ArrayLike, position_step: float, heading_step: float
 ) -> NDArray[np.int64]:
-    """Index of the map pose nearest (in grid units) to each pose (M, 3) -> (M,)."""
+    """Index of the map pose nearest (in grid units) to each pose (M, 3) -> (M,); the first
+    such index on ties. Computed in blocks of rows (:data:`NEAREST_BLOCK_ELEMENTS`), the same
+    result as all rows at once."""
     a = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     m = np.asarray(map_poses, dtype=np.float64).reshape(-1, 3)
-    return np.argmin(_grid_distances(a, m, position_step, heading_step), axis=1).astype(np.int64)
+    rows = max(1, NEAREST_BLOCK_ELEMENTS // max(m.shape[0], 1))
+    out = np.empty(a.shape[0], dtype=np.int64)
+    for i in range(0, a.shape[0], rows):
+        out[i : i + rows] = np.argmin(_grid_distances(a[i : i + rows], m, position_step, heading_step), axis=1)
+    return out
 
 
 def map_positions(map_poses: ArrayLike, decimals: int = 6) -> FloatArray:

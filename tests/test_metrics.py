@@ -76,6 +76,19 @@ def test_success_across_the_angle_cut() -> None:
     assert idx[0] == idx[1]
 
 
+def test_nearest_map_index_in_blocks_equals_all_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    import lino_loc.metrics as metrics
+
+    m = _grid()
+    rng = np.random.default_rng(3)
+    p = np.column_stack([rng.uniform(-0.5, 3.5, 101), rng.uniform(-0.5, 2.0, 101), rng.uniform(-4, 4, 101)])
+    whole = np.argmin(metrics._grid_distances(p, m, STEP, HSTEP), axis=1)
+    for budget in (1, len(m) * 7, 10**9):  # one row per block, 7 rows (the last block short), all
+        monkeypatch.setattr(metrics, "NEAREST_BLOCK_ELEMENTS", budget)
+        np.testing.assert_array_equal(nearest_map_index(p, m, STEP, HSTEP), whole)
+    assert nearest_map_index(np.zeros((0, 3)), m, STEP, HSTEP).shape == (0,)
+
+
 def test_sensor_model_error_is_min_position_distance() -> None:
     truth = np.array([1.0, 1.0, 0.0])
     nb = np.array([[1.3, 1.4, 3.0], [0.0, 0.0, 0.0], [1.0, 2.0, 0.0]])

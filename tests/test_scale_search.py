@@ -97,6 +97,17 @@ def test_hnsw_cache_reused_and_damage_rebuilt(small_map: AppearanceMap, tmp_path
     np.testing.assert_array_equal(rebuilt.neighbours(ys)[0], first.neighbours(ys)[0])  # deterministic build
 
 
+def test_hnsw_cache_folder_is_made_when_missing(small_map: AppearanceMap, tmp_path) -> None:
+    pytest.importorskip("hnswlib")
+    f = small_map.channels["intensity"].features[:500]
+    cfg = SensorModelConfig(index="hnsw", index_cache=tmp_path / "not" / "yet")
+    first = NearestNeighbourSensorModel(small_map.poses[:500], f, cfg)
+    assert first._graph is not None and first._graph.source == "built"
+    assert len(list((tmp_path / "not" / "yet").glob("hnsw-*.bin"))) == 1
+    again = NearestNeighbourSensorModel(small_map.poses[:500], f, cfg)
+    assert again._graph is not None and again._graph.source == "cache"
+
+
 def test_missing_extra_is_one_line_and_auto_still_works(small_map: AppearanceMap, monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "hnswlib", None)  # import hnswlib -> ImportError
     f = small_map.channels["intensity"].features

@@ -39,7 +39,9 @@ def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarra
     cams = cams.reshape(-1, 3)
     cell = nearest_map_index(cams, grid, setup.step, math.radians(setup.heading_step_deg))
     idx, _ = model.neighbours(feats.reshape(cams.shape[0], -1))
-    idx_cell = nearest_map_index(entries, grid, setup.step, math.radians(setup.heading_step_deg))[idx]
+    # the grid cells of the neighbours only (all the entries' against the grid: N x N distances)
+    idx_cell = nearest_map_index(entries[idx.ravel()], grid, setup.step,
+                                 math.radians(setup.heading_step_deg)).reshape(idx.shape)
     near = (np.hypot(entries[idx, 0] - cams[:, None, 0], entries[idx, 1] - cams[:, None, 1]) <= setup.step * 1.05) & (
         np.abs(wrap_angle(entries[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
     return {

@@ -200,6 +200,31 @@ def render_frames(
     return np.concatenate([g for g, _ in parts]), np.concatenate([d for _, d in parts])
 
 
+def frame_renderer(spec: ViewSpec) -> Renderer:
+    """A renderer of ``spec``'s world, light, scene changes and camera size, for
+    :func:`render_frame` (the one the process pools build per worker)."""
+    world = load_world(spec.world)
+    return Renderer(world, camera=CameraModel(width=spec.width, height=spec.height), lighting=spec.lighting,
+                    scene_changes=spec.scene_changes)
+
+
+def render_frame(
+    renderer: Renderer, spec: ViewSpec, pose: np.ndarray, pan: float, index: int
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """What the camera delivers on a robot at ``pose`` (x, y, theta) with the head at ``pan``
+    (rad): the grey image (height, width) uint8 and, with ``spec.disparity``, its sparse
+    disparity at ``spec.size`` (NaN = no value), else None. Noise seeded by (``spec.seed``,
+    ``index``): at pan 0 it is view ``index`` of :func:`render_frames` (of :func:`render_grey`
+    without disparity), so a run that turns the head sees the same noise as one that does not."""
+    x, y, theta = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3))
+    rng = np.random.default_rng((spec.seed, int(index)))
+    view = renderer.render(x, y, theta, pan=float(pan), stereo=spec.disparity, rng=rng)
+    if not spec.disparity:
+        return view.grey, None
+    disp = compute_disparity(view.left, view.right, spec.stereo)
+    return view.grey, downsample_sparse(disp, spec.size, spec.min_valid_fraction)
+
+
 # --------------------------------------------------------------------------- survey maps
 
 

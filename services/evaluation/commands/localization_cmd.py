@@ -99,36 +99,84 @@ def map_record(path: str, amap) -> dict:  # amap: AppearanceMap
 # --------------------------------------------------------------------------- global
 
 
-def _global(args: argparse.Namespace) -> int:
-    from services.evaluation.global_loc import GlobalSetup, run
+def parse_counts(text: str | None) -> tuple[int, ...] | None:
+    """``--particles``: one count or several, comma-separated (None: the configuration's).
+    LinoLocError (one line) on a count that is not a whole number of at least 1."""
+    if text is None:
+        return None
+    parts = [c.strip() for c in text.split(",") if c.strip()]
+    try:
+        counts = tuple(int(c) for c in parts)
+    except ValueError:
+        counts = ()
+    if not counts or any(n < 1 for n in counts):
+        raise LinoLocError(f"--particles: expected whole numbers of at least 1, comma-separated, got {text!r}")
+    return counts
+
+
+def parse_cameras(text: str) -> tuple[str, ...]:
+    """``--camera``: fixed, active, or both comma-separated. LinoLocError (one line) otherwise."""
+    from services.evaluation.global_loc import CAMERAS
+
+    names = tuple(c.strip() for c in text.split(",") if c.strip())
+    if not names or any(c not in CAMERAS for c in names) or len(set(names)) != len(names):
+        raise LinoLocError(f"--camera: expected fixed, active or fixed,active, got {text!r}")
+    return names
+
+
+def _global_setup(args: argparse.Namespace):  # -> GlobalSetup
+    from services.evaluation.global_loc import GlobalSetup
 
     if args.starts < 1 or args.updates < 1:
         raise LinoLocError("--starts and --updates must be at least 1")
     if args.step <= 0 or args.heading_step <= 0:
         raise LinoLocError("--step and --heading-step must be positive")
-    setup = GlobalSetup(world=args.world, step=args.step, heading_step_deg=args.heading_step,
-                        features=args.features, preprocess=args.preprocess,
-                        starts=args.starts, updates=args.updates, rate=args.rate, particles=args.particles,
-                        j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
-                        channels=parse_channels(args.channels), sensor_model=args.sensor_model)
+    if args.head_speed <= 0:
+        raise LinoLocError(f"--head-speed: must be positive, got {args.head_speed}")
+    return GlobalSetup(world=args.world, step=args.step, heading_step_deg=args.heading_step,
+                       features=args.features, preprocess=args.preprocess,
+                       starts=args.starts, updates=args.updates, rate=args.rate,
+                       j=args.j, seed=args.seed, workers=args.workers, virtual_headings=args.virtual_headings,
+                       channels=parse_channels(args.channels), sensor_model=args.sensor_model,
+                       head_speed=args.head_speed)
+
+
+def _print_global(res: dict) -> None:
+    print(f"global localization, {res['world']}, camera {res['camera']}: {res['starts']} starts, map "
+          f"{res['map_entries']} entries ({'+'.join(res['channels'])}), "
+          f"{res['features']} features, J={res['J']}, {res['particles']} particles, {res['rate_hz']:g} Hz")
+    print(f"{'update':>6} {'mean err m':>11} {'median m':>9} {'success':>8} {'converged':>10} {'tracking':>9}")
+    for k in range(res["updates"]):
+        print(f"{k + 1:>6} {res['mean_error_m'][k]:>11.3f} {res['median_error_m'][k]:>9.3f} "
+              f"{res['success'][k]:>8.2f} {res['converged_by_update'][k]:>10.2f} {res['tracking'][k]:>9.2f}")
+    c = res["converge"]
+    med = "-" if c["median_s"] is None else f"{c['median_updates']:g} updates ({c['median_s']:.1f} s)"
+    print(f"converged {100 * c['share']:.0f} % of starts, median {med}; filter update "
+          f"{res['update_cpu_ms']['median']:.1f} ms CPU")
+
+
+def _global(args: argparse.Namespace) -> int:
+    from services.evaluation.global_loc import run_grid
+
+    setup = _global_setup(args)
+    cameras = parse_cameras(args.camera)
+    counts = parse_counts(args.particles)
     amap = given_map(args.map, setup.channels)
     if amap is not None:
         setup = dataclasses.replace(setup, size=amap.size, preprocess=amap.preprocess)
     bar, cb = _progress()
-    res = run(setup, _localizer_config(args), appearance_map=amap, progress=cb)  # type: ignore[arg-type]
-    if amap is not None:
-        res["map"] = map_record(args.map, amap)
+    grid = run_grid(setup, counts, cameras, _localizer_config(args), appearance_map=amap,  # type: ignore[arg-type]
+                    progress=cb)
     bar.close()
+    for res in grid["runs"]:
+        if amap is not None:
+            res["map"] = map_record(args.map, amap)
+    single = len(grid["runs"]) == 1
     if args.json:
-        print(json.dumps(res))
+        print(json.dumps(grid["runs"][0] if single else grid))
         return 0
-    print(f"global localization, {res['world']}: {res['starts']} starts, map {res['map_entries']} entries "
-          f"({'+'.join(res['channels'])}), "
-          f"{res['features']} features, J={res['J']}, {res['particles']} particles, {res['rate_hz']:g} Hz")
-    print(f"{'update':>6} {'mean err m':>11} {'median m':>9} {'success':>8} {'tracking':>9}")
-    for k in range(res["updates"]):
-        print(f"{k + 1:>6} {res['mean_error_m'][k]:>11.3f} {res['median_error_m'][k]:>9.3f} "
-              f"{res['success'][k]:>8.2f} {res['tracking'][k]:>9.2f}")
+    for res in grid["runs"]:
+        _print_global(res)
     return 0
 
 
@@ -242,7 +290,16 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--step", type=float, default=0.75, help="map grid step, metres (section 6.1: 0.75)")
     p.add_argument("--heading-step", type=float, default=15.0, help="map heading step, degrees (section 6.1: 15)")
     p.add_argument("--preprocess", default="none", choices=PREPROCESS_METHODS)
-    p.add_argument("--particles", type=int, default=None, help="default: the localizer configuration's")
+    p.add_argument("--particles", default=None, metavar="N[,N...]",
+                   help="particles (default: the localizer configuration's); several, comma-separated, run "
+                   "on the same starts and frames (then --json prints {\"runs\": [...]})")
+    p.add_argument("--camera", default="fixed", metavar="fixed|active|fixed,active",
+                   help="the head: fixed at pan 0 (section 6.1), or turned by the daemon's active-vision "
+                   "policy ([active_vision] defaults); both: run both on the same starts (default fixed)")
+    from services.evaluation.global_loc import HEAD_SPEED_RAD_S
+
+    p.add_argument("--head-speed", type=float, default=HEAD_SPEED_RAD_S,
+                   help="rad/s of the head with --camera active (the head driver's default profile velocity)")
     p.add_argument("--j", type=int, default=None, help="nearest map entries J (default: configuration's)")
     p.add_argument("--sensor-model", choices=("nearest_neighbour", "interpolated"), default=None,
                    help="p(y | x) (default: the configuration's, nearest_neighbour; interpolated: "
