@@ -17,7 +17,9 @@ steps (:meth:`AuxiliaryParticleFilter.update`):
    (the camera's motion, base and head pan, makes a view new);
 4. recover (``lino_loc.kidnap_recovery``): AMCL's w_slow / w_fast averages decide injection
    before convergence, validated candidate sets while tracking; the component returns a
-   verdict, the filter carries it out;
+   verdict, the filter carries it out. A converged belief not yet confirmed is then
+   challenged by its rivals (``lino_loc.belief_challenge``: the places the views also look
+   like), and is ``tracking`` only once it out-scores them;
 5. resample: systematic (by default) resampling to equal weights when the effective sample size
    falls below ``resample_threshold * N``;
 6. estimate and state (``lino_loc.pose_estimate``): the dominant mode of the belief and the
