@@ -19,8 +19,17 @@ of the camera's increment: consecutive frames of one view are not independent ev
 camera that did not move adds nothing). The belief PASSES when E_t reaches ``margin``; until
 then the filter keeps calling it ``global``. E_t does not fall below -``margin``: rivals that
 explain the views better keep the belief unconfirmed, and the belief must out-score them by
-the whole width 2 ``margin`` to pass. The challenge only judges: it never moves the belief
-(replacing a belief is kidnap recovery's, which tempers the views by their familiarity).
+the whole width 2 ``margin`` to pass.
+
+A belief the rivals keep beating is REFUTED: when E_t has stayed at -``margin`` for
+``refute_views`` independent views in a row (the rivals out-scored the belief on every one of
+them), a share ``refute_share`` of the belief's particles is replaced by rivals (drawn by their
+weights) and the streak starts again. The rivals JOIN the belief rather than replace it: the
+filter's own weighting over the next views decides between the old place and the new ones, so
+a right belief that a changed light made look worse for a while keeps its place, and a search
+that settled on the wrong place gets the better ones back (a converged particle filter has
+lost them; Mixture-MCL's dual proposal, Thrun, Fox, Burgard, Dellaert 2001, restores them the
+same way).
 
 Rivals are the particles more than :data:`lino_loc.lost_detection.CONFIRM_RADIUS_XY` (1 m, the
 evaluations' confident-wrong bound) in position or
@@ -51,7 +60,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from lino_loc.kidnap_recovery import UNEXPLAINED, CandidateSet
+from lino_loc.kidnap_recovery import UNEXPLAINED, CandidateSet, Verdict
 from lino_loc.lost_detection import near_pose
 from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.resampling import Resampler, systematic
@@ -98,6 +107,14 @@ class ChallengeConfig(BaseModel):
         "this many independent views since it was drawn: it must predict a view it was not "
         "drawn from",
     )
+    refute_views: float = Field(
+        5.0, ge=0.0, description="independent views in a row with the evidence at -margin "
+        "that refute the belief: rivals then join it (0: never)",
+    )
+    refute_share: float = Field(
+        0.5, gt=0.0, le=1.0, description="share of a refuted belief's particles replaced by "
+        "rivals drawn by their weights",
+    )
     adopt: bool = Field(
         False, description="rivals that reach -margin replace the belief (a search that "
         "settled on the wrong place starts again from the better one); off: measured, it made "
@@ -118,6 +135,8 @@ class BeliefChallenge:
     rivals: CandidateSet | None = field(default=None, init=False)
     challenges: int = field(default=0, init=False)  # challenges started since construction
     rival_wins: int = field(default=0, init=False)  # times the rivals reached -margin
+    refutations: int = field(default=0, init=False)  # times the rivals joined a refuted belief
+    _pinned: float = field(default=0.0, init=False)  # independent views in a row at -margin
     _seen: FloatArray | None = field(default=None, init=False)  # views each rival has lived
     _at: FloatArray | None = field(default=None, init=False)  # where the last challenge was
     _won: bool = field(default=False, init=False)  # ... and whether it passed
@@ -132,7 +151,7 @@ class BeliefChallenge:
         self._at = p
         self.rivals = self._seen = None
         if not same:
-            self.evidence, self._won = 0.0, False
+            self.evidence, self._won, self._pinned = 0.0, False, 0.0
             self.challenges += int(self.config.enabled)
         self.passed = self._won or not self.config.enabled
         self.active = not self.passed
@@ -147,7 +166,7 @@ class BeliefChallenge:
     def reset(self) -> None:
         """A new belief elsewhere (a new start, a recovery): forget the last challenge."""
         self.stop()
-        self._at, self.evidence, self._won = None, 0.0, False
+        self._at, self.evidence, self._won, self._pinned = None, 0.0, False, 0.0
 
     def waive(self) -> None:
         """The belief needs no challenge (a pose given by the user)."""
@@ -171,12 +190,13 @@ class BeliefChallenge:
         draw: Callable[[int], FloatArray],
         n: int,
         rng: np.random.Generator,
-    ) -> FloatArray | None:
+    ) -> Verdict | None:
         """One observation: the belief's predictive log-likelihood ``ll``, the outlier floor,
         the frame's independent views ``views``, the odometry increment, the log-likelihood of
         robot poses, which robot poses are near the belief, a sampler of ``m`` robot poses from
-        the view's mixture, the belief's size and the random generator. Returns ``n`` robot
-        poses (equal weights) to replace the belief when the rivals won and ``adopt`` is set,
+        the view's mixture, the belief's size and the random generator. Returns what the filter
+        must do to the belief: ``adopt`` (``n`` rivals replace it: the rivals won and ``adopt``
+        is set), ``join`` (rivals replace ``count`` of its particles: the belief is refuted),
         else None."""
         if not self.active:
             return None
@@ -195,9 +215,22 @@ class BeliefChallenge:
             if self.config.adopt and self.rivals is not None:
                 adopted = self.rivals.particles[self.resample(self.rivals.weights, rng, n)]
                 self.reset()  # the rivals are the new belief; its convergence starts a challenge
-                return adopted
+                return Verdict("adopt", 0, adopted)
+        verdict = self._refute(views, n, rng)
         self._refresh(near, draw, max(MIN_RIVALS, int(round(self.config.rival_fraction * n))), rng)
-        return None
+        return verdict
+
+    def _refute(self, views: float, n: int, rng: np.random.Generator) -> Verdict | None:
+        """Count the views in a row at -margin; at ``refute_views`` of them, rivals drawn by
+        their weights join the belief (``refute_share`` of ``n``) and the count restarts."""
+        self._pinned = self._pinned + views if self.evidence <= -self.config.margin else 0.0
+        limit = self.config.refute_views
+        if limit <= 0.0 or self._pinned < limit or self.rivals is None:
+            return None
+        self._pinned = 0.0
+        self.refutations += 1
+        count = max(1, int(round(self.config.refute_share * n)))
+        return Verdict("join", count, self.rivals.particles[self.resample(self.rivals.weights, rng, count)])
 
     def _refresh(self, near: Callable[[FloatArray], NDArray[np.bool_]], draw: Callable[[int], FloatArray],
                  m: int, rng: np.random.Generator) -> None:

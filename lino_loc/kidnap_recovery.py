@@ -161,10 +161,12 @@ class Verdict:
     ``none``: nothing; ``inject``: resample the belief to equal weights and replace ``count``
     random particles by draws from the sensor model; ``draw``: a candidate set of ``count``
     particles was drawn (the belief is left alone); ``drop``: the candidate set was dropped;
-    ``adopt``: replace the belief by ``particles`` with equal weights (a new belief).
-    ``count``: the particles injected or drawn (``inject``, ``draw``), else 0."""
+    ``adopt``: replace the belief by ``particles`` with equal weights (a new belief); ``join``:
+    resample the belief to equal weights and replace ``count`` random particles by
+    ``particles`` (a belief refuted by its rivals, ``lino_loc.belief_challenge``).
+    ``count``: the particles injected, drawn or joined (``inject``, ``draw``, ``join``), else 0."""
 
-    action: Literal["none", "inject", "draw", "drop", "adopt"] = "none"
+    action: Literal["none", "inject", "draw", "drop", "adopt", "join"] = "none"
     count: int = 0
     particles: FloatArray | None = None
 

@@ -19,7 +19,8 @@ steps (:meth:`AuxiliaryParticleFilter.update`):
    before convergence, validated candidate sets while tracking; the component returns a
    verdict, the filter carries it out. A converged belief not yet confirmed is then
    challenged by its rivals (``lino_loc.belief_challenge``: the places the views also look
-   like), and is ``tracking`` only once it out-scores them;
+   like), and is ``tracking`` only once it out-scores them; rivals that keep out-scoring
+   it refute it and join it (half of its particles);
 5. resample: systematic (by default) resampling to equal weights when the effective sample size
    falls below ``resample_threshold * N``;
 6. estimate and state (``lino_loc.pose_estimate``): the dominant mode of the belief and the
@@ -610,19 +611,21 @@ class AuxiliaryParticleFilter:
         if not self.challenge.active:
             return
         mean = self._dominant()[0]
-        adopted = self.challenge.observe(
+        verdict = self.challenge.observe(
             ll, floor, views, delta=d, loglik=loglik, near=lambda x: near_pose(x, mean),
             draw=lambda m: self.sample_from_mixture(mixture, pan, m), n=self.n, rng=self.rng,
         )
-        if adopted is not None:
+        if verdict is not None:
             self.recovery.forget_evidence()
             self.recovery.restart_averages()
-            self._carry_out(Verdict("adopt", 0, adopted), mixture, pan)
+            self._carry_out(verdict, mixture, pan)
 
     def _carry_out(self, verdict: Verdict, mixture: PoseMixture, pan: float) -> None:
         """inject: resample the belief to equal weights (its softmax recomputed from the
         log-weights), then overwrite ``count`` random particles by draws from the sensor model;
-        adopt: the candidate set's particles become the belief, whose convergence restarts."""
+        adopt: the candidate set's particles become the belief, whose convergence restarts;
+        join: as inject, with the verdict's particles (a refuted belief's rivals) in place of
+        draws; the belief's convergence restarts (the next one is a new belief)."""
         self.injected = verdict.count
         if verdict.action == "inject" and verdict.count > 0:
             idx = self._resample(self._weights.log, self.rng)
@@ -630,6 +633,13 @@ class AuxiliaryParticleFilter:
             slots = self.rng.choice(self.n, size=verdict.count, replace=False)
             x[slots] = self.sample_from_mixture(mixture, pan, verdict.count)
             self._assign(x, Weights.uniform(self.n))
+        elif verdict.action == "join" and verdict.particles is not None:
+            idx = self._resample(self._weights.log, self.rng)
+            x = self._particles[idx]
+            k = min(verdict.count, self.n, verdict.particles.shape[0])
+            x[self.rng.choice(self.n, size=k, replace=False)] = verdict.particles[:k]
+            self._assign(x, Weights.uniform(self.n))
+            self._belief_converged = False  # whatever converges next is a new belief
         elif verdict.action == "adopt":
             assert verdict.particles is not None
             self._assign(verdict.particles, Weights.uniform(verdict.particles.shape[0]))

@@ -1,6 +1,7 @@
 """The challenge of a new belief by its rivals (lino_loc.belief_challenge), without a filter: the
-SPRT's arithmetic (views, clipping, the lower bound), who passes and who wins, adoption, the
-rivals kept away from the belief, and the filter's state waiting for the pass."""
+SPRT's arithmetic (views, clipping, the lower bound), who passes and who wins, adoption,
+refutation, the rivals kept away from the belief; in the filter, the state waiting for the pass
+and a wrong belief refuted."""
 
 from __future__ import annotations
 
@@ -65,7 +66,7 @@ def test_evidence_counts_independent_views_only() -> None:
 
 def test_rivals_that_fit_better_hold_the_belief_unconfirmed_at_the_lower_bound() -> None:
     rng = np.random.default_rng(2)
-    ch = _challenge(margin=8.0, max_view_nats=4.0, adopt=False)
+    ch = _challenge(margin=8.0, max_view_nats=4.0, adopt=False, refute_views=0.0)
     good_rivals = _place_loglik(RIVAL_PLACE, peak=0.0)
     for _ in range(20):
         assert _observe(ch, rng, -30.0, good_rivals) is None
@@ -83,9 +84,32 @@ def test_with_adopt_the_winning_rivals_replace_the_belief() -> None:
     good_rivals = _place_loglik(RIVAL_PLACE, peak=0.0)
     outs = [_observe(ch, rng, -30.0, good_rivals) for _ in range(2)]  # the first view draws them
     out = outs[1]
-    assert outs[0] is None and out is not None and out.shape == (N, 3)
-    assert np.linalg.norm(out[:, :2].mean(axis=0) - RIVAL_PLACE[:2]) < 0.2
+    assert outs[0] is None and out is not None and out.action == "adopt"
+    assert out.particles is not None and out.particles.shape == (N, 3)
+    assert np.linalg.norm(out.particles[:, :2].mean(axis=0) - RIVAL_PLACE[:2]) < 0.2
     assert not ch.active and not ch.passed  # a new belief: its own challenge at its convergence
+
+
+def test_rivals_that_win_refute_views_in_a_row_join_the_belief() -> None:
+    """E pinned at -margin for ``refute_views`` independent views: a ``join`` verdict with
+    ``refute_share`` of n rivals; the streak restarts; views that do not pin E break it."""
+    rng = np.random.default_rng(10)
+    ch = _challenge(margin=8.0, max_view_nats=4.0, refute_views=5.0, refute_share=0.25)
+    good_rivals = _place_loglik(RIVAL_PLACE, peak=0.0)
+    out = [_observe(ch, rng, -30.0, good_rivals, views=0.5) for _ in range(14)]
+    # view 0 draws the rivals (the floor stands in: E 0 -> -2), then -2 a frame: E reaches -8 at
+    # frame 3, pinned from there; 10 frames of 0.5 views pinned = frames 3..12
+    joined = [k for k, v in enumerate(out) if v is not None]
+    assert joined == [12]
+    v = out[12]
+    assert v.action == "join" and v.count == round(0.25 * N) and v.particles.shape == (v.count, 3)
+    assert np.linalg.norm(v.particles[:, :2].mean(axis=0) - RIVAL_PLACE[:2]) < 0.3
+    assert ch.refutations == 1 and ch.active and not ch.passed and ch.evidence == -8.0
+    # one view that lifts E off the bound breaks the streak
+    _observe(ch, rng, 0.0, _place_loglik(RIVAL_PLACE, peak=-30.0), views=0.5)
+    assert ch.evidence > -8.0 and ch._pinned == 0.0
+    off = _challenge(refute_views=0.0)
+    assert all(_observe(off, rng, -30.0, good_rivals) is None for _ in range(30)) and off.refutations == 0
 
 
 def test_rivals_near_the_belief_are_not_rivals() -> None:
@@ -151,6 +175,10 @@ def test_config_is_checked() -> None:
         ChallengeConfig(margin=0.0)
     with pytest.raises(ValueError):
         ChallengeConfig(refresh=1.5)
+    with pytest.raises(ValueError):
+        ChallengeConfig(refute_share=0.0)
+    with pytest.raises(ValueError):
+        ChallengeConfig(refute_views=-1.0)
     assert math.isfinite(ChallengeConfig().margin)
 
 
@@ -179,29 +207,38 @@ def test_a_view_no_rival_explains_does_not_break_the_challenge() -> None:
 
 # --------------------------------------------------------------------- in the filter
 
-def _filter_run(enabled: bool, twin_until: int, frames: int = 60, seed: int = 0) -> list[str]:
+def _filter_run(enabled: bool, twin_until: int, frames: int = 60, seed: int = 0, decoy: float = 0.0,
+                refute_views: float = 5.0, errors: list[float] | None = None) -> list[str]:
     """A robot driving east at 0.1 m per frame from (2, 2, 0), its belief gathered at the true
     place; each view's mixture has a kernel at the truth and, for the first ``twin_until``
-    frames, an equal one at the place 5 m east (identical places); the states per frame."""
+    frames, an equal one at the place 5 m east (identical places); the states per frame (and
+    the position errors into ``errors``). ``decoy`` (m): the belief gathered that far west of
+    the truth instead, where every view also has a kernel 2 nats less likely than the truth's
+    (a place that looks nearly alike)."""
     from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
     from lino_loc.sensor_model import Bounds, PoseMixture
 
     bounds = Bounds(0.0, 12.0, 0.0, 4.0)
     motion = OdometryMotionModel(MotionModelConfig(alpha1=0.02, alpha2=0.02, alpha3=0.02, alpha4=0.005))
-    cfg = FilterConfig(n_particles=500, challenge=ChallengeConfig(enabled=enabled))
+    cfg = FilterConfig(n_particles=500, challenge=ChallengeConfig(enabled=enabled, refute_views=refute_views))
     cfg.view_fit.enabled = False  # the state of the lost test and the challenge alone
     pf = AuxiliaryParticleFilter(motion, bounds, cfg, rng=np.random.default_rng(seed))
     rng = np.random.default_rng(seed + 1)
-    pf.set_particles(np.array([2.0, 2.0, 0.0]) + rng.normal(0.0, [0.1, 0.1, 0.05], (500, 3)))
+    pf.set_particles(np.array([2.0 - decoy, 2.0, 0.0]) + rng.normal(0.0, [0.1, 0.1, 0.05], (500, 3)))
     step = np.array([0.1, 0.0, 0.0])
     states = []
     for k in range(frames):
         truth = np.array([2.1 + 0.1 * k, 2.0, 0.0])
         kernels = np.vstack([truth, truth + [5.0, 0.0, 0.0]]) if k < twin_until else truth[None, :]
-        mix = PoseMixture.create(kernels, np.zeros(len(kernels)), np.full(len(kernels), 0.3),
+        lw = np.zeros(len(kernels))
+        if decoy:
+            kernels, lw = np.vstack([kernels, truth - [decoy, 0.0, 0.0]]), np.append(lw, -2.0)
+        mix = PoseMixture.create(kernels, lw, np.full(len(kernels), 0.3),
                                  np.full(len(kernels), 0.3), outlier_weight=0.01, bounds=bounds)
         pf.update(step, 0.0, mix)
         states.append(pf.state)
+        if errors is not None:
+            errors.append(float(np.hypot(*(pf.estimate().pose[:2] - truth[:2]))))
     return states
 
 
@@ -214,6 +251,19 @@ def test_the_filter_calls_a_belief_tracking_only_once_it_beats_its_identical_twi
     assert "tracking" not in on[:40]
     # ... and confirmed once the views single out the place (the twin stops fitting)
     assert on[-1] == "tracking"
+
+
+def test_a_belief_gathered_at_the_wrong_place_is_refuted_and_the_filter_finds_the_right_one() -> None:
+    """The belief gathered 3 m west of the truth, at a place that explains every view nearly
+    as well (a search that settled wrong): its likelihood never drops, so no recovery moves
+    it. Refuted by its rivals, it is joined by them, and the filter ends `tracking` at the
+    truth; without refutation it stays at the wrong place, honestly `global`."""
+    kept: list[float] = []
+    states = _filter_run(enabled=True, twin_until=0, frames=80, decoy=3.0, refute_views=0.0, errors=kept)
+    assert "tracking" not in states and min(kept[-10:]) > 2.0
+    fixed: list[float] = []
+    states = _filter_run(enabled=True, twin_until=0, frames=80, decoy=3.0, refute_views=5.0, errors=fixed)
+    assert states[-1] == "tracking" and max(fixed[-10:]) < 0.3
 
 
 def test_refreshing_rivals_some_of_which_drifted_near_the_belief() -> None:
