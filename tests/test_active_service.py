@@ -128,7 +128,7 @@ SLOWDOWN = 3.0  # a phase taking longer than this many times its frames at FPS (
 CONVERGED_M = 1.0  # m: the right place, two survey steps (see the module's docstring)
 #: starts (of 5) where active vision must reach tracking at the right place. Since a new belief
 #: must out-score its rivals (lino_loc.belief_challenge) a standing robot confirms its right place
-#: later: 2-4 of 5 within the window over 14 runs (docs/results.md, "the service: a standing robot
+#: later: 2-5 of 5 within the window over 18 runs (docs/results.md, "the service: a standing robot
 #: and the challenge"; 5 of 5 before), never at a wrong place.
 MIN_REACHED = 2
 PAN_LIMIT = 1.6  # the configured active-vision range [-PAN_LIMIT, PAN_LIMIT] (head: +-2.6)
