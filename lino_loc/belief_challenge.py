@@ -213,7 +213,7 @@ class BeliefChallenge:
         if self.evidence <= -margin < before:
             self.rival_wins += 1
             if self.config.adopt and self.rivals is not None:
-                adopted = self.rivals.particles[self.resample(self.rivals.weights, rng, n)]
+                adopted = self._drawn(n, rng)
                 self.reset()  # the rivals are the new belief; its convergence starts a challenge
                 return Verdict("adopt", 0, adopted)
         verdict = self._refute(views, n, rng)
@@ -230,7 +230,12 @@ class BeliefChallenge:
         self._pinned = 0.0
         self.refutations += 1
         count = max(1, int(round(self.config.refute_share * n)))
-        return Verdict("join", count, self.rivals.particles[self.resample(self.rivals.weights, rng, count)])
+        return Verdict("join", count, self._drawn(count, rng))
+
+    def _drawn(self, m: int, rng: np.random.Generator) -> FloatArray:
+        """``m`` rivals drawn by their weights (the resampler's draw); there must be rivals."""
+        assert self.rivals is not None
+        return self.rivals.particles[self.resample(self.rivals.weights, rng, m)]
 
     def _refresh(self, near: Callable[[FloatArray], NDArray[np.bool_]], draw: Callable[[int], FloatArray],
                  m: int, rng: np.random.Generator) -> None:

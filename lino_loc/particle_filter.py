@@ -628,17 +628,10 @@ class AuxiliaryParticleFilter:
         draws; the belief's convergence restarts (the next one is a new belief)."""
         self.injected = verdict.count
         if verdict.action == "inject" and verdict.count > 0:
-            idx = self._resample(self._weights.log, self.rng)
-            x = self._particles[idx]
-            slots = self.rng.choice(self.n, size=verdict.count, replace=False)
-            x[slots] = self.sample_from_mixture(mixture, pan, verdict.count)
-            self._assign(x, Weights.uniform(self.n))
+            self._mix_in(verdict.count, lambda m: self.sample_from_mixture(mixture, pan, m))
         elif verdict.action == "join" and verdict.particles is not None:
-            idx = self._resample(self._weights.log, self.rng)
-            x = self._particles[idx]
-            k = min(verdict.count, self.n, verdict.particles.shape[0])
-            x[self.rng.choice(self.n, size=k, replace=False)] = verdict.particles[:k]
-            self._assign(x, Weights.uniform(self.n))
+            joined = verdict.particles
+            self._mix_in(min(verdict.count, self.n, joined.shape[0]), lambda m: joined[:m])
             self._belief_converged = False  # whatever converges next is a new belief
         elif verdict.action == "adopt":
             assert verdict.particles is not None
@@ -646,6 +639,14 @@ class AuxiliaryParticleFilter:
             self._belief_converged = False  # a new belief: its convergence restarts the tests
             self.challenge.reset()
             self._state = "global"
+
+    def _mix_in(self, count: int, fresh: Callable[[int], FloatArray]) -> None:
+        """Resample the belief to equal weights (its softmax recomputed from the log-weights),
+        then overwrite ``count`` random particles by ``fresh(count)`` (inject and join)."""
+        x = self._particles[self._resample(self._weights.log, self.rng)]
+        slots = self.rng.choice(self.n, size=count, replace=False)
+        x[slots] = fresh(count)
+        self._assign(x, Weights.uniform(self.n))
 
     def _resample_if_degenerate(self) -> None:
         """Step 5: resample when ESS < resample_threshold * N."""
