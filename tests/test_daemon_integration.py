@@ -528,7 +528,10 @@ def test_kill_9_and_restart_resume_from_the_saved_pose(rig: Rig) -> None:
     assert a is not None
     moved = math.hypot(b[0] - a[0], b[1] - a[1])
     d = math.hypot(first[0]["pose"]["x"] - saved["pose"]["x"], first[0]["pose"]["y"] - saved["pose"]["y"])
-    assert d < 1.0, (d, moved)  # resumed around the saved pose, not from a global belief
+    # resumed around the saved pose, not from a global belief: within 1 m of it, plus the robot's
+    # own travel while the daemon was down, which the daemon cannot see (a clean-clone CI run under
+    # load: the restart took long enough for 0.96 m of travel, the first pose 1.04 m from the save)
+    assert d < 1.0 + moved, (d, moved)
     assert first[0]["covariance"][0] < 2.0 and first[0]["covariance"][4] < 2.0  # not spread over the map
     # ... but not trusted: 'global' until the views confirm it (a quick row of
     # benchmarks/restart_table.py: the robot moved since the save)
