@@ -48,8 +48,10 @@ observations fit the map badly: the lost detector's evidence has reached ``trigg
 its threshold, or the last predictive log-likelihood is below ``min_log_likelihood``),
 WHEN to stop (converged, or no action lowers the expected entropy by ``min_entropy_gain``),
 turns the head back to ``home_pan`` (ahead) once converged, waits for the head to settle and for a frame taken after it settled, and never commands a
-pan outside the intersection of its own range and the head's limits. It is pure logic: the
-caller (the daemon) passes the head's present pan, its moving flag and the time.
+pan outside the intersection of its own range and the head's limits. With
+``reliability.enabled`` it discounts H(u) at pans near views that fit no map entry
+(:mod:`lino_loc.pan_reliability`; the caller feeds the views with :meth:`ActivePolicy.observe`).
+It is pure logic: the caller (the daemon) passes the head's present pan, its moving flag and the time.
 
 Usage::
 
@@ -77,6 +79,7 @@ from scipy.spatial import cKDTree
 from scipy.special import i0e
 
 from lino_loc.interpolated_appearance import InterpolatedSensorModel
+from lino_loc.pan_reliability import PanReliability, PanReliabilityConfig
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 from lino_loc.sensor_model import LOG_2PI, NearestNeighbourSensorModel, lambda_log_weights
@@ -136,6 +139,10 @@ class ActiveVisionConfig(BaseModel):
         description="sensor model of a predicted observation (a map entry's features): its J "
         "nearest map entries ('all', the entry itself first) or the J nearest among the OTHER "
         "entries ('leave_one_out': an image taken off the map grid never matches an entry exactly)",
+    )
+    reliability: PanReliabilityConfig = Field(
+        default_factory=PanReliabilityConfig,
+        description="discount H(u) at pans whose recent views fit no map entry (lino_loc.pan_reliability)",
     )
     entropy_cell_xy: float = Field(0.5, gt=0.0, description="cell size (m) of the belief entropy")
     entropy_cell_theta: float = Field(
@@ -712,6 +719,17 @@ class ActivePolicy:
         self.last_command_time = -math.inf
         self.last_command: float | None = None
         self.settle = HeadSettle(self.config.settle_s)
+        self.reliability = PanReliability(self.config.reliability)
+
+    def observe(self, pan: float, novelty: float, delta: ArrayLike | None = None) -> None:
+        """A view the filter used: taken at ``pan`` with ``novelty`` (``PoseMixture.novelty``)
+        after the base moved by ``delta`` (odometry increment, robot frame; None: not moved).
+        Feeds the per-pan reliability (:mod:`lino_loc.pan_reliability`) when it is enabled."""
+        if not self.config.reliability.enabled:
+            return
+        if delta is not None:
+            self.reliability.move(delta)
+        self.reliability.observe(pan, novelty)
 
     def clamp(self, pan: float) -> float:
         """A pan angle inside the allowed range (NaN becomes the range's centre)."""
@@ -783,6 +801,8 @@ class ActivePolicy:
                 return Decision(home, "home", h_b)
             return Decision(None, "converged", h_b)
         values = self.evaluator.evaluate(p, lw, self.candidates(), rng)
+        if c.reliability.enabled:
+            values = self.reliability.discount(values)
         here = float(pan) if math.isfinite(pan) else None
         best = values.best(here, c.move_cost)
         if values.gain[best] < c.min_entropy_gain:

@@ -110,6 +110,9 @@ class Localizer:
             if name in ("intensity", "disparity")
         }
         self.channels = channels
+        #: the intensity channel's novelty of the last frame used (``PoseMixture.novelty``; nan:
+        #: no image, or no intensity features); read by active vision's per-pan reliability
+        self.last_novelty = math.nan
         fc = self.config.fusion
         self._adaptive = (
             AdaptiveFusionWeights(fc.adaptive)
@@ -208,6 +211,9 @@ class Localizer:
         the last update, the head's pan angle (rad) at the frame's time, the image (None when
         the camera failed: prediction only) and the optional disparity map."""
         mixtures = self.channel_mixtures(image, disparity)
+        self.last_novelty = (
+            float(mixtures["intensity"].novelty) if mixtures and "intensity" in mixtures else math.nan
+        )
         mixture = None
         if mixtures is not None:
             if self._adaptive is not None and len(mixtures) == 2:

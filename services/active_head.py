@@ -53,6 +53,7 @@ from lino_loc.active_vision import (
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
 from lino_loc.lost_detection import STANDING_VIEWS, VIEW_THETA, independent_views
+from lino_loc.pan_reliability import PanReliabilityConfig
 from lino_loc.pose_estimate import Estimate
 from services.messages import ActiveVisionInfo
 
@@ -92,6 +93,11 @@ class ActiveVisionSettings(BaseModel):
     home_pan: float | None = Field(
         _METHOD.home_pan,
         description="radians; once localized the head returns here (0: looking ahead); unset: it stays",
+    )
+    reliability: PanReliabilityConfig = Field(
+        default_factory=lambda: _METHOD.reliability.model_copy(),
+        description="per-pan reliability learned online: avoid pans near views that fit no map entry "
+        "(lino_loc.pan_reliability)",
     )
 
     @model_validator(mode="after")
@@ -172,10 +178,18 @@ class ActiveHead:
                 self.frames_head_moving += 1
         return at_rest
 
-    def step(self, est: Estimate, stamp: float, delta: Any = None) -> float | None:
+    def step(self, est: Estimate, stamp: float, delta: Any = None, pan: float | None = None) -> float | None:
         """Ask the policy and move the head; returns the pan sent (None: no command).
         ``delta``: the base's odometry increment since the previous frame (None: unknown, no
-        confirmation look)."""
+        confirmation look); ``pan``: the head's pan of the frame the localizer just used with
+        an image (None: no image), which with the localizer's ``last_novelty`` feeds the
+        policy's per-pan reliability (``[active_vision.reliability]``)."""
+        if self.policy is not None:
+            novelty = self.localizer.last_novelty if pan is not None else math.nan
+            try:
+                self.policy.observe(math.nan if pan is None else float(pan), novelty, delta)
+            except Exception as exc:  # noqa: BLE001 - active vision must not stop localization
+                log.warning("active vision: view not recorded: %s: %s", type(exc).__name__, exc)
         with self._lock:
             active = self.enabled and not self.paused and not self.head_paused
         if not active or self.policy is None or self.head is None:

@@ -508,7 +508,7 @@ class Daemon:
             self.refresh.offer(stamp, frame.left, frame.disparity, est.pose, pan, est.quality, est.state)
         self.live.frame(stamp, frame.left)
         self.status.frame_taken()
-        self.active.step(est, stamp, delta)
+        self.active.step(est, stamp, delta, pan if image is not None else None)
 
     def _maybe_dead_reckon(self, mono: float, now: float) -> None:
         if not self.watch.due(mono, now):

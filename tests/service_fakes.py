@@ -87,6 +87,7 @@ class FakeLocalizer:
         self.calls: list[Any] = []
         self.appearance_changes = 0
         self.bounds = Bounds(0.0, 5.0, 0.0, 3.0)  # the box of the belief above
+        self.last_novelty = math.nan
 
     def particles(self) -> tuple[np.ndarray, np.ndarray]:
         return self.p.copy(), self.w.copy()

@@ -4,6 +4,7 @@ head-settle rule, and a failing policy does not stop the loop."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -17,7 +18,10 @@ from services.config import ServiceConfig
 
 class FakePolicy:
     def __init__(self, command: float | None = 0.7, fail: bool = False) -> None:
-        self.command, self.fail, self.calls = command, fail, []
+        self.command, self.fail, self.calls, self.views = command, fail, [], []
+
+    def observe(self, pan, novelty, delta=None):  # noqa: ANN001, ANN201
+        self.views.append((pan, novelty, delta))
 
     def decide(self, particles, log_weights, **kw):  # noqa: ANN001, ANN003, ANN201
         self.calls.append(kw)
@@ -131,3 +135,16 @@ def test_an_unconfirmed_converged_belief_gets_a_confirmation_look() -> None:
         assert pan is not None and CONFIRM_LOOK_MIN_TURN <= abs(pan - 1.0) < 0.6, pan
         assert head.commands == [(pan, 0.0)]
         assert a.info().last_decision == "confirm" and a.policy.last_command == pan  # type: ignore[union-attr]
+
+
+def test_the_views_used_with_an_image_reach_the_policys_reliability() -> None:
+    """The frame's pan and the localizer's novelty go to the policy (lino_loc.pan_reliability);
+    a frame without an image passes only the odometry (no pan, no novelty)."""
+    a, _ = _active()
+    a.policy = FakePolicy(None)  # type: ignore[assignment]
+    a.localizer.last_novelty = 1.7  # type: ignore[attr-defined]
+    a.step(estimate(), stamp=1.0, delta=[0.1, 0.0, 0.0], pan=0.4)
+    a.step(estimate(), stamp=1.2, delta=[0.0, 0.0, 0.2], pan=None)
+    (p1, n1, d1), (p2, n2, d2) = a.policy.views  # type: ignore[union-attr]
+    assert (p1, n1, d1) == (0.4, 1.7, [0.1, 0.0, 0.0])
+    assert math.isnan(p2) and math.isnan(n2) and d2 == [0.0, 0.0, 0.2]

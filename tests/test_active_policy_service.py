@@ -50,3 +50,26 @@ def test_policy_keeps_inside_the_head_limits() -> None:
     p, lw = _uniform_belief()
     d = policy.decide(p, lw, state="global", log_likelihood=-5.0, pan=0.0, moving=False, now=100.0)
     assert d.command is None or -0.5 <= d.command <= 0.25
+
+
+def test_the_service_feeds_the_views_novelty_to_the_pan_reliability() -> None:
+    """``[active_vision.reliability] enabled = true``: the localizer keeps the novelty of the
+    last frame used with an image (nan without one), and ActiveHead hands it with the frame's
+    pan to the policy, whose reliability then remembers the view."""
+    from service_fakes import FakeHeads, FakeWorker, HeadReading
+
+    from services.active_head import ActiveHead
+
+    m, f_img, _ = _world()
+    cfg = ServiceConfig(active_vision={"reliability": {"enabled": True}})
+    loc = Localizer(m, _config())
+    assert math.isnan(loc.last_novelty)
+    a = ActiveHead(cfg.active_vision, _head_limits(cfg), loc, FakeHeads(HeadReading()), FakeWorker())
+    a.start()
+    assert a.policy is not None and a.policy.config.reliability.enabled
+    est = loc.update(np.zeros(3), 0.3, f_img(np.array([[0.8, 1.2, 0.3]]))[0])
+    assert math.isfinite(loc.last_novelty) and loc.last_novelty > 0.0
+    a.step(est, stamp=1.0, delta=np.zeros(3), pan=0.3)
+    assert a.policy.reliability.views == 1
+    loc.predict_only(np.zeros(3))
+    assert math.isnan(loc.last_novelty)

@@ -47,6 +47,8 @@ def test_json_has_the_contract_keys(tiny_run: tuple[dict, object]) -> None:
             assert all(p >= q for p, q in zip(r["success"], r["success_pose"], strict=True))
             assert all(v >= 0.0 for v in r["mean_error_m"] + r["std_error_m"])
     assert res["scene_changes"]["names"] == ["boxes"]
+    assert set(res["scene_changes"]["chosen_view_change"]) == {"entropy", "random", "sweep"}
+    assert all(v >= 0.0 for v in res["scene_changes"]["chosen_view_change"].values())
     # the default map: every image also turned by -6, -3, +3, +6 deg (lino_loc.virtual_views)
     assert res["map_entries"] == 5 * res["map_images"]
     for bands in (res["success_by_grid_distance"], res["scene_changes"]["success_by_grid_distance"]):
@@ -201,6 +203,7 @@ def test_product_defaults_are_the_commands_defaults() -> None:
     assert d["channels"] == ["intensity", "disparity"] and d["disparity_features"] == 5
     assert d["filter"] == {"global_proposal_fraction": 0.5}
     assert d["motion"] == {"min_sigma_xy": 0.01, "min_sigma_theta": pytest.approx(math.radians(0.5))}
+    assert d["pan_reliability"]["enabled"] is True  # lino_loc.pan_reliability, on for the product
 
 
 def test_paper_setup_is_section_6_1() -> None:
@@ -212,6 +215,7 @@ def test_paper_setup_is_section_6_1() -> None:
             "world": "lab", "positions": 7, "paper": True}
     assert {k: r[k] for k in want} == want
     assert "sensor_model" not in r  # the nearest-neighbour model (the report names only the other)
+    assert "pan_reliability" not in r  # the paper's H(u), undiscounted
     with pytest.raises(ValueError, match="features"):
         paper_setup(features=7)
 
@@ -230,7 +234,8 @@ def test_paper_on_the_command_line(capsys: pytest.CaptureFixture[str]) -> None:
     assert got == dataclasses.replace(paper_setup(positions=3, seed=4),
                                       active=paper_setup().active.model_copy(update={"max_particles": 100}))
     for bad in (["--virtual-headings", "5"], ["--features", "7"], ["--channels", "intensity,disparity"],
-                ["--sensor-model", "interpolated"], ["--step", "1.0"], ["--particles", "60"]):
+                ["--sensor-model", "interpolated"], ["--step", "1.0"], ["--particles", "60"],
+                ["--pan-reliability", "on"]):
         assert main(["eval", "active", "--paper", *bad]) == 2
         err = capsys.readouterr().err
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and "--paper fixes" in err

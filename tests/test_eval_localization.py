@@ -140,6 +140,10 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
     sw = res["light_switch"]  # tube for frames 0-1, bulb for 2-4
     assert sw["lights"] == ["tube", "bulb"] and sw["switch_at_s"] == pytest.approx(1.0)
     assert 0.0 <= sw["lost_fraction_after"] <= 1.0 and sw["mean_error_after_m"] <= sw["max_error_after_m"]
+    s_w, est_w = read_tum(tmp_path / "traj" / "switch-tube-bulb.estimate.tum")  # the switch run too
+    np.testing.assert_array_equal(s_t, s_w)
+    err_w = np.hypot(*(est_w[2:, :2] - truth[2:, :2]).T)
+    assert err_w.mean() == pytest.approx(sw["mean_error_after_m"], abs=1e-5)
 
 
 def test_kidnap_frames_jump_to_the_farthest_pose_of_the_last_quarter() -> None:

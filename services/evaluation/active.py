@@ -55,6 +55,7 @@ from lino_loc.fusion import fuse
 from lino_loc.interpolated_appearance import InterpolatedSensorModel, fuse_likelihoods
 from lino_loc.metrics import nearest_map_index, position_errors, success, success_pose
 from lino_loc.motion_model import OdometryMotionModel
+from lino_loc.pan_reliability import PanReliability
 from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel
@@ -157,15 +158,18 @@ def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarr
                 evaluator=action_evaluator(model, setup.active), map_poses=map_poses)
 
 
-def _observe(fi: np.ndarray, fd: np.ndarray | None) -> Any:
-    """The sensor-model mixture of a view: intensity alone, or fused with its disparity."""
+def _observe(fi: np.ndarray, fd: np.ndarray | None) -> tuple[Any, float]:
+    """The sensor-model mixture of a view (intensity alone, or fused with its disparity) and
+    the novelty of its intensity channel (``PoseMixture.novelty``)."""
     model = _ctx["model"]
     model_d = _ctx["model_d"]
     if model_d is None or fd is None or not np.all(np.isfinite(fd)):
-        return model.observe(fi)
+        mix = model.observe(fi)
+        return mix, float(mix.novelty)
     fc = _ctx["setup"].fusion
     obs = {"intensity": model.observe(fi, fc.j_intensity), "disparity": model_d.observe(fd, fc.j_disparity)}
-    return fuse_likelihoods(obs, fc) if isinstance(model, InterpolatedSensorModel) else fuse(obs, fc)
+    fused = fuse_likelihoods(obs, fc) if isinstance(model, InterpolatedSensorModel) else fuse(obs, fc)
+    return fused, float(obs["intensity"].novelty)
 
 
 def roughen(pf: AuxiliaryParticleFilter, setup: ActiveSetup, mixture: Any = None, pan: float = 0.0) -> None:
@@ -223,7 +227,9 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
                                            == truth_cell)))
             a = a0
             ests, seq = [], [a]
-            mix = _observe(feats[a], None if dfeats is None else dfeats[a])
+            reliability = PanReliability(setup.active.reliability)  # used by the entropy strategy when enabled
+            mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
+            reliability.observe(float(pans[a]), novelty)
             pf.update(zero, float(pans[a]), mix)
             roughen(pf, setup, mix, float(pans[a]))
             ests.append(pf.estimate().pose)
@@ -233,6 +239,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
                 if strat == "entropy":
                     t0 = time.process_time()
                     values = ev.evaluate(pf.particles, pf.log_weights)
+                    if setup.active.reliability.enabled:
+                        values = reliability.discount(values)
                     eval_ms.append(1e3 * (time.process_time() - t0))
                     a = values.best(float(pans[a]), ev.config.move_cost, exclude=[a])
                 elif strat == "random":
@@ -240,7 +248,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
                 else:
                     a = (a + setup.sweep_stride) % n_a
                 seq.append(a)
-                mix = _observe(feats[a], None if dfeats is None else dfeats[a])
+                mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
+                reliability.observe(float(pans[a]), novelty)
                 pf.update(zero, float(pans[a]), mix)
                 roughen(pf, setup, mix, float(pans[a]))
                 ests.append(pf.estimate().pose)
@@ -397,6 +406,22 @@ def diagnose(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_feat
     return out
 
 
+def chosen_view_change(parts: list[dict[str, Any]], strategies: tuple[str, ...], mapped: np.ndarray,
+                       changed: np.ndarray) -> dict[str, float]:
+    """How much the scene changes spoiled the views each strategy chose: the feature distance
+    between a test view with the changes and the same view as mapped, ``|f_changed - f_mapped|``
+    (``mapped``, ``changed``: (P, A, d)), over the views chosen after each movement, relative to
+    the mean over all candidate pans of the same position (1: as spoiled as an average view)."""
+    spoil = np.linalg.norm(changed - mapped, axis=-1)  # (P, A)
+    mean = spoil.mean(axis=1)
+    out: dict[str, float] = {}
+    for s in strategies:
+        ratios = [spoil[p["pos"], seq[1:]] / mean[p["pos"]] for p in parts for seq in p["strategies"][s]["pans"]
+                  if mean[p["pos"]] > 0 and len(seq) > 1]
+        out[s] = float(np.mean(np.concatenate(ratios))) if ratios else math.nan
+    return out
+
+
 def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The experiment. Returns (the JSON-ready result, extras for plotting)."""
     t0 = time.perf_counter()
@@ -415,6 +440,8 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     diagnostics: dict[str, Any] = {}
     bands: dict[str, Any] = {}
     compared: dict[str, Any] = {}
+    mapped_feats = np.empty(0)
+    view_change: dict[str, float] = {}
     for name, ch in conditions:
         feats, dfeats = render_tests(setup, pca, margin, truths, pans, ch, progress,
                                      None if disp is None else disp[0])
@@ -427,6 +454,10 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
         extras[name] = parts
         diagnostics[name] = diagnose(setup, grid, entries, map_features, truths, pans, feats, parts)
         timing.extend(v for p in parts for v in p["eval_ms"])
+        if not ch:
+            mapped_feats = feats
+        else:
+            view_change = chosen_view_change(parts, setup.strategies, mapped_feats, feats)
     base = results["none"]
     out: dict[str, Any] = {
         "positions": int(truths.shape[0]),
@@ -447,7 +478,8 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     if changes:
         out["scene_changes"] = {"names": list(changes), "strategies": results["+".join(changes)],
                                 "comparisons": compared["+".join(changes)],
-                                "success_by_grid_distance": bands["+".join(changes)]}
+                                "success_by_grid_distance": bands["+".join(changes)],
+                                "chosen_view_change": view_change}
     return out, extras
 
 

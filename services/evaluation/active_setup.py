@@ -44,9 +44,10 @@ def paper_sensor_model(**overrides: Any) -> SensorModelConfig:
 
 def paper_active_vision(**overrides: Any) -> ActiveVisionConfig:
     """The experiment's action evaluation: 22 pans over [-2.6, 2.6] rad, H(u) on <= 150
-    particles, predicted observations from all J neighbours."""
+    particles, predicted observations from all J neighbours, no per-pan reliability (the
+    paper's H(u); :func:`product_defaults` turns it on)."""
     return ActiveVisionConfig(**{"n_actions": 22, "pan_min": -2.6, "pan_max": 2.6, "max_particles": 150,
-                                 "predicted_neighbours": "all", **overrides})
+                                 "predicted_neighbours": "all", "reliability": {"enabled": False}, **overrides})
 
 
 @dataclass(frozen=True)
@@ -130,6 +131,8 @@ class ActiveSetup:
         }
         if self.disparity_features is not None:  # reported only when set
             out["disparity_features"] = self.disparity_features
+        if a.reliability.enabled:  # reported when on (lino_loc.pan_reliability)
+            out["pan_reliability"] = a.reliability.model_dump()
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was
             out.update(sensor_model=self.sensor_model, residual_scale=self.interpolation.residual_scale)
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in out.items()}
@@ -146,7 +149,7 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
         "disparity_features": 5, "preprocess": "none", "channels": ("intensity", "disparity"),
         "sensor_model": "nearest_neighbour",
         "sensor": paper_sensor_model(), "interpolation": InterpolationConfig(), "particles": 150, "inject": 0.0,
-        "active": paper_active_vision(),
+        "active": paper_active_vision(reliability={"enabled": True}),
         "filter": {"global_proposal_fraction": 0.5},
         "motion": {"min_sigma_xy": 0.01, "min_sigma_theta": math.radians(0.5)},
     }

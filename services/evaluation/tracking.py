@@ -335,6 +335,9 @@ def run(
         switched = {"lights": list(switch), **switch_metrics(plan.stamps, srun.est, truth, srun.states, k_sw),
                     **honesty_metrics(plan.stamps, position_errors(srun.est, truth), srun.states)}
         graded.append((srun, truth))
+        if out_dir is not None:
+            write_tum(out_dir / trajectory_names(f"switch-{switch[0]}-{switch[1]}")[0], plan.stamps, srun.est,
+                      comment=f"estimate, lights {switch[0]} -> {switch[1]} at frame {k_sw}, known start")
         log.info("tracking, lights %s -> %s at %.0f s: mean error after %.3f m, lost after %.1f %%", *switch,
                  switched["switch_at_s"], switched["mean_error_after_m"], 100 * switched["lost_fraction_after"])
     result: dict[str, Any] = {

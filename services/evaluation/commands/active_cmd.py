@@ -99,6 +99,7 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
     "eval_particles": lambda s: s.active.max_particles,
     "actions": lambda s: s.active.n_actions,
     "predicted": lambda s: s.active.predicted_neighbours,
+    "pan_reliability": lambda s: "on" if s.active.reliability.enabled else "off",
     "inject": lambda s: s.inject,
     "global_proposal": lambda s: s.filter_config().global_proposal_fraction,
     "floor_xy": lambda s: s.motion_config().min_sigma_xy,
@@ -107,7 +108,7 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
 #: The options `--paper` fixes (:data:`services.evaluation.active_setup.PAPER_METHOD`).
 _PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "disparity_features",
                                  "preprocess",
-                                 "channels", "sensor_model", "j", "particles", "actions")
+                                 "channels", "sensor_model", "j", "particles", "actions", "pan_reliability")
 #: Method options mapped one to one onto an ActiveSetup field.
 _FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
                            "virtual_step": "virtual_step_deg", "features": "features",
@@ -133,6 +134,8 @@ def with_options(base: ActiveSetup, given: dict[str, Any]) -> ActiveSetup:
     """``base`` with the method options given on the command line (keys of :data:`_METHOD`)."""
     active = {f: given[k] for k, f in (("actions", "n_actions"), ("eval_particles", "max_particles"),
                                        ("predicted", "predicted_neighbours")) if k in given}
+    if "pan_reliability" in given:
+        active["reliability"] = {**base.active.reliability.model_dump(), "enabled": given["pan_reliability"] == "on"}
     filt = dict(base.filter)
     if "global_proposal" in given:
         filt["global_proposal_fraction"] = given["global_proposal"]
@@ -249,6 +252,9 @@ def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
     p.add_argument("--predicted", choices=("all", "leave_one_out"),
                    help=f"sensor model of a predicted observation (see lino_loc.active_vision; default "
                    f"{dv['predicted']})")
+    p.add_argument("--pan-reliability", choices=("on", "off"),
+                   help="entropy strategy: discount H(u) at pans near views that fit no map entry, learned "
+                   f"online (lino_loc.pan_reliability; default {dv['pan_reliability']})")
     p.add_argument("--inject", type=float,
                    help="investigation: after each update replace this fraction of the particles by draws "
                    f"from the image's sensor model (default {dv['inject']:g}; 0: the filter as the service runs it)")
