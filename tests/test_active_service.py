@@ -136,13 +136,22 @@ PAN_TOLERANCE = 0.02  # rad: position reporting of the emulated servo (one tick 
 TRUTH_GAP_S = 0.1  # s: the latest truth sample must be this recent to judge a pose
 
 
+#: Manual experiments only (``main``): scene changes the simulated camera renders (unknown to the
+#: map) and ``[active_vision.reliability] enabled`` (None: the service's default).
+EXPERIMENT: dict[str, Any] = {"scene_changes": (), "reliability": None}
+
+
 def config_text(*, head: str, odometry: str, camera: str, pub: str, rep: str, state: Path) -> str:
+    changes = ", ".join(f'"{c}"' for c in EXPERIMENT["scene_changes"])
+    reliability = EXPERIMENT["reliability"]
+    extra = "" if reliability is None else f"[active_vision.reliability]\nenabled = {str(reliability).lower()}\n"
     return f"""
 [devices.camera]
 kind = "sim"
 [devices.camera.sim]
 endpoint = "{camera}"
 world = "office"
+scene_changes = [{changes}]
 width = 80
 height = 60
 fps = 5.0
@@ -181,7 +190,7 @@ state_file = "{state}"
 restore = false
 [logging]
 level = "INFO"
-"""
+""" + extra
 
 
 class Collector:
@@ -595,7 +604,12 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - manual ex
     ap.add_argument("--window", type=int, default=WINDOW_FRAMES, help="frames per phase")
     ap.add_argument("--start", action="append", default=None, help="X,Y,THETA (repeatable)")
     ap.add_argument("--frames", action="store_true", help="print every frame of each phase")
+    ap.add_argument("--scene-changes", default="", help="the office's scene changes to render (comma-separated)")
+    ap.add_argument("--reliability", choices=("on", "off"), default=None,
+                    help="[active_vision.reliability] enabled (default: the service's)")
     args = ap.parse_args(argv)
+    EXPERIMENT["scene_changes"] = tuple(c for c in args.scene_changes.split(",") if c)
+    EXPERIMENT["reliability"] = None if args.reliability is None else args.reliability == "on"
     starts = tuple(tuple(float(v) for v in s.split(",")) for s in args.start) if args.start else STARTS
     tmp = Path(tempfile.mkdtemp(prefix="lino-av-"))
     t = time.time()
