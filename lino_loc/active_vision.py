@@ -724,9 +724,7 @@ class ActivePolicy:
     def observe(self, pan: float, novelty: float, delta: ArrayLike | None = None) -> None:
         """A view the filter used: taken at ``pan`` with ``novelty`` (``PoseMixture.novelty``)
         after the base moved by ``delta`` (odometry increment, robot frame; None: not moved).
-        Feeds the per-pan reliability (:mod:`lino_loc.pan_reliability`) when it is enabled."""
-        if not self.config.reliability.enabled:
-            return
+        Feeds the per-pan reliability (:mod:`lino_loc.pan_reliability`; a no-op when disabled)."""
         if delta is not None:
             self.reliability.move(delta)
         self.reliability.observe(pan, novelty)
@@ -800,9 +798,7 @@ class ActivePolicy:
                 self.last_command = home
                 return Decision(home, "home", h_b)
             return Decision(None, "converged", h_b)
-        values = self.evaluator.evaluate(p, lw, self.candidates(), rng)
-        if c.reliability.enabled:
-            values = self.reliability.discount(values)
+        values = self.reliability.discount(self.evaluator.evaluate(p, lw, self.candidates(), rng))
         here = float(pan) if math.isfinite(pan) else None
         best = values.best(here, c.move_cost)
         if values.gain[best] < c.min_entropy_gain:

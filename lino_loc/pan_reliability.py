@@ -98,7 +98,9 @@ class PanReliabilityConfig(BaseModel):
 
 
 class PanReliability:
-    """Spoil evidence of the views taken at the robot's present place (module docstring)."""
+    """Spoil evidence of the views taken at the robot's present place (module docstring).
+    Disabled (``config.enabled`` False) it remembers nothing and :meth:`discount` returns the
+    values unchanged: callers feed it and ask it without checking."""
 
     def __init__(self, config: PanReliabilityConfig | None = None) -> None:
         self.config = config or PanReliabilityConfig()
@@ -130,7 +132,7 @@ class PanReliability:
     def observe(self, pan: float, novelty: float) -> None:
         """Record a view taken at robot-frame ``pan`` (rad) with ``novelty``. Views with an
         unknown novelty (nan) or pan are ignored."""
-        if not (math.isfinite(pan) and math.isfinite(novelty)):
+        if not (self.config.enabled and math.isfinite(pan) and math.isfinite(novelty)):
             return
         self._pans.append(float(pan))
         self._spoil.append(self.spoil_probability(novelty))
@@ -139,7 +141,10 @@ class PanReliability:
 
     def move(self, delta: ArrayLike) -> None:
         """The base moved by the odometry increment ``delta`` = (dx, dy, dtheta) in its own
-        frame: the remembered pans shift by ``-dtheta``; after ``forget_xy`` of travel, forget."""
+        frame: the remembered pans shift by ``-dtheta``; after ``forget_xy`` of travel since the
+        oldest view remembered, forget (travel with no view remembered does not count)."""
+        if not self._pans:
+            return
         d = np.asarray(delta, dtype=np.float64).reshape(-1)
         if d.size < 3 or not np.all(np.isfinite(d)):
             return
@@ -160,7 +165,10 @@ class PanReliability:
         return np.prod(1.0 - np.asarray(self._spoil)[None, :] * rho, axis=1)
 
     def discount(self, values: V) -> V:
-        """``values`` with H'(u) = r(u) H(u) + (1 - r(u)) H_0 (module docstring)."""
+        """``values`` with H'(u) = r(u) H(u) + (1 - r(u)) H_0 (module docstring); unchanged
+        when disabled."""
+        if not self.config.enabled:
+            return values
         r = self.reliability(values.actions)
         h = r * values.expected_entropy + (1.0 - r) * values.current_entropy
         return replace(values, expected_entropy=h)  # type: ignore[type-var]

@@ -62,6 +62,17 @@ def test_pans_follow_the_robot_frame_and_travel_forgets() -> None:
     rel.move([0.2, 0.0, 0.0])
     assert rel.views == 0 and rel.reliability([-0.3])[0] == 1.0
     rel.move([math.nan, 0.0, 0.0])  # a bad increment is ignored
+    rel.move([0.3, 0.0, 0.0])  # travel before the next view does not count against it
+    rel.observe(0.0, 3.0)
+    rel.move([0.2, 0.0, 0.0])
+    assert rel.views == 1
+
+
+def test_disabled_remembers_nothing_and_discounts_nothing() -> None:
+    rel = PanReliability(CFG.model_copy(update={"enabled": False}))
+    rel.observe(0.0, 3.0)
+    v = ActionValues(actions=np.zeros(1), expected_entropy=np.array([1.0]), current_entropy=4.0, n_particles=1)
+    assert rel.views == 0 and rel.discount(v) is v
 
 
 def test_memory_keeps_the_latest_views() -> None:

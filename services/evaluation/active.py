@@ -227,7 +227,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
                                            == truth_cell)))
             a = a0
             ests, seq = [], [a]
-            reliability = PanReliability(setup.active.reliability)  # used by the entropy strategy when enabled
+            reliability = PanReliability(setup.active.reliability)  # the entropy strategy's (a no-op when off)
             mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
             reliability.observe(float(pans[a]), novelty)
             pf.update(zero, float(pans[a]), mix)
@@ -238,9 +238,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
             for _ in range(setup.movements):
                 if strat == "entropy":
                     t0 = time.process_time()
-                    values = ev.evaluate(pf.particles, pf.log_weights)
-                    if setup.active.reliability.enabled:
-                        values = reliability.discount(values)
+                    values = reliability.discount(ev.evaluate(pf.particles, pf.log_weights))
                     eval_ms.append(1e3 * (time.process_time() - t0))
                     a = values.best(float(pans[a]), ev.config.move_cost, exclude=[a])
                 elif strat == "random":
