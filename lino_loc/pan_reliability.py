@@ -142,7 +142,7 @@ class PanReliability:
     def move(self, delta: ArrayLike) -> None:
         """The base moved by the odometry increment ``delta`` = (dx, dy, dtheta) in its own
         frame: the remembered pans shift by ``-dtheta``; after ``forget_xy`` of travel since the
-        oldest view remembered, forget (travel with no view remembered does not count)."""
+        first view remembered, forget all (travel with no view remembered does not count)."""
         if not self._pans:
             return
         d = np.asarray(delta, dtype=np.float64).reshape(-1)
