@@ -38,7 +38,17 @@ Two ways to recover (``mode``, :class:`RecoveryConfig`):
   4. it replaces the belief (verdict ``adopt``, with N particles resampled from it) when the
      evidence exceeds ``candidate_margin`` after at least CANDIDATE_MIN_UPDATES trusted
      updates (the sum of f), and is dropped (verdict ``drop``) when the evidence falls below
-     ``-candidate_margin`` or after CANDIDATE_MAX_UPDATES updates.
+     ``-candidate_margin`` or after CANDIDATE_MAX_UPDATES updates;
+  5. with ``channel_margin`` > 0 and an observation of several channels (eq. 8's intensity
+     and disparity), the candidate set must also be preferred by EVERY channel on its own:
+     each channel's evidence, the same sum with the channel's likelihood of the view under the
+     updated candidate set and under the updated belief, counted from the first update after
+     the candidates have moved one independent view (``lino_loc.lost_detection.
+     independent_views``: they sit on the kernels of the view they were drawn from, and must
+     predict a view they were not drawn from), must exceed ``channel_margin``. A kidnapping
+     moves the robot, so every channel prefers the right place; a changed light misleads the
+     appearance channel only, and two channels pointing at different places is evidence of
+     the light, not of a kidnapping.
 
 A kidnapping seen only through unfamiliar views (another light) is not recovered. How the
 constants were chosen and what they give: docs/results.md, "Notes moved from the code:
@@ -66,8 +76,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from lino_loc.lost_detection import independent_views
 from lino_loc.motion_model import OdometryMotionModel
-from lino_loc.resampling import Resampler, systematic
+from lino_loc.resampling import Resampler, logsumexp, systematic
 from lino_loc.sensor_model import PoseMixture
 from lino_loc.weights import NoFiniteWeightError, Weights
 
@@ -112,6 +123,12 @@ class RecoveryConfig(BaseModel):
     novel_novelty: float = Field(
         2.0, gt=0.0, description="... from this one on not at all (linear in between)"
     )
+    channel_margin: float = Field(
+        5.0, ge=0.0, description="log likelihood ratio (nats) by which EVERY channel of the "
+        "observation (intensity, disparity) must also prefer a candidate set on its own, counted "
+        "once it has moved one independent view, before it replaces the belief: a changed light "
+        "misleads one channel, a kidnapping moves all of them; 0 switches the test off",
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> RecoveryConfig:
@@ -152,6 +169,8 @@ class CandidateSet:
     evidence: float = 0.0
     age: int = 0
     trusted: float = 0.0
+    channel_evidence: dict[str, float] = field(default_factory=dict)
+    seen: float = 0.0  # independent views since the draw
 
 
 @dataclass(frozen=True)
@@ -172,6 +191,16 @@ class Verdict:
 
 
 NOTHING = Verdict()
+
+
+@dataclass(frozen=True)
+class ChannelView:
+    """One channel of an observation, for the candidate test's agreement (step 5): the
+    log-likelihood of robot poses under the channel alone, and the channel's log-likelihood
+    of the view under the updated belief, log sum_i pi^i p_c(y | x^i)."""
+
+    loglik: Callable[[FloatArray], FloatArray]
+    belief_ll: float
 
 
 @dataclass
@@ -278,17 +307,23 @@ class KidnapRecovery:
         n: int,
         draw: Callable[[int], FloatArray],
         rng: np.random.Generator,
+        channels: dict[str, ChannelView] | None = None,
+        views: float | None = None,
     ) -> Verdict:
         """One observation: the belief's predictive log-likelihood ``ll``, the view's novelty,
         the outlier floor, the odometry increment, the log-likelihood of poses (for the
         candidate set), whether the belief has ever converged, the belief's size, a sampler
         of ``m`` poses from the sensor model and the random generator. Random draws, in
-        order: the candidate set's (propagation, resampling, adoption), then ``draw``."""
+        order: the candidate set's (propagation, resampling, adoption), then ``draw``.
+        ``channels``, for an observation of several channels: per channel, the log-likelihood
+        of poses under that channel alone and the channel's log-likelihood of the view under
+        the updated belief (step 5 of the module docstring); ``views``, the frame's
+        independent views (default: those of ``delta``)."""
         fam = self.familiarity(novelty)
         self.track_likelihood(ll, fam, floor)
         verdict = NOTHING
         if self.candidates is not None:
-            verdict = self._test_candidates(delta, loglik, ll, fam, n, rng)
+            verdict = self._test_candidates(delta, loglik, ll, fam, n, rng, channels, views)
             if verdict.action == "adopt":
                 return verdict
         decided = self._decide(converged, n, fam, draw)
@@ -319,8 +354,12 @@ class KidnapRecovery:
         familiarity: float,
         n: int,
         rng: np.random.Generator,
+        channels: dict[str, ChannelView] | None = None,
+        views: float | None = None,
     ) -> Verdict:
-        """One bootstrap-filter step of the candidate set, its evidence, and the decision."""
+        """One bootstrap-filter step of the candidate set, its evidence (fused, and per
+        channel when ``channels`` are given and ``channel_margin`` is set), and the decision;
+        ``views``: the frame's independent views (default: the odometry increment's)."""
         cs = self.candidates
         assert cs is not None
         x = self.motion.sample(cs.particles, delta, rng)
@@ -340,8 +379,20 @@ class KidnapRecovery:
         if w.ess() < 0.5 * m:
             x = x[self.resample(w, rng)]
             w = Weights.uniform(m)
+        margin_c = self.config.channel_margin
+        several = margin_c > 0.0 and channels is not None and len(channels) > 1
+        if several and cs.seen >= 1.0:
+            assert channels is not None
+            for name, view in channels.items():
+                ll_c = float(logsumexp(w.log + view.loglik(x)))
+                gain = max(ll_c, UNEXPLAINED) - max(view.belief_ll, UNEXPLAINED)
+                cs.channel_evidence[name] = cs.channel_evidence.get(name, 0.0) + familiarity * gain
+        cs.seen += independent_views(delta) if views is None else views
         cs.particles, cs.weights = x, w
-        if cs.trusted >= CANDIDATE_MIN_UPDATES and cs.evidence > self.config.candidate_margin:
+        agree = not several or (
+            len(cs.channel_evidence) > 1 and min(cs.channel_evidence.values()) > margin_c
+        )
+        if cs.trusted >= CANDIDATE_MIN_UPDATES and cs.evidence > self.config.candidate_margin and agree:
             adopted = x[self.resample(w, rng, n)]
             self.recoveries += 1
             self.forget_evidence()

@@ -76,7 +76,13 @@ from lino_loc.appearance_change import AppearanceChangeConfig, AppearanceChangeD
 from lino_loc.belief_challenge import BeliefChallenge, ChallengeConfig
 from lino_loc.channel_agreement import overlap
 from lino_loc.errors import LinoLocError
-from lino_loc.kidnap_recovery import KidnapRecovery, RecoveryConfig, Verdict, outlier_floor
+from lino_loc.kidnap_recovery import (
+    ChannelView,
+    KidnapRecovery,
+    RecoveryConfig,
+    Verdict,
+    outlier_floor,
+)
 from lino_loc.lost_detection import (
     HIT_NATS,
     LostConfig,
@@ -276,6 +282,7 @@ class AuxiliaryParticleFilter:
         self.appearance_watch = AppearanceChangeDetector() if c.appearance_change.enabled else None
         self.injected = 0  # particles injected or drawn as candidates by the last update
         self._last_pan: float | None = None  # the head's pan at the last observation
+        self._channel_ll: dict[str, float] = {}  # per channel, log p_c(y) under the belief
         self.start_global()
 
     # ----------------------------------------------------------------- the weighted set
@@ -555,8 +562,10 @@ class AuxiliaryParticleFilter:
         log-likelihood of the view under the updated belief, log sum_i pi^i p_c(y |
         camera_pose(x^i, pan)), minus the channel's outlier floor; with one channel (or none
         named) the predictive log-likelihood's ``excess`` itself, under the channel's name
-        (``view`` when unnamed)."""
+        (``view`` when unnamed). The channels' log-likelihoods themselves are kept for kidnap
+        recovery's agreement test (:meth:`_recover`)."""
         channels = mixture.channels
+        self._channel_ll = {}
         if not channels or len(channels) == 1:
             return {next(iter(channels)) if channels else "view": excess}
         x = self._particles
@@ -565,6 +574,7 @@ class AuxiliaryParticleFilter:
         out = {}
         for name, m in channels.items():
             ll = float(logsumexp(self._weights.log + m.log_pdf_trig(x[:, 0], x[:, 1], c, s_)))
+            self._channel_ll[name] = ll
             fl = outlier_floor(m)
             out[name] = ll - fl if math.isfinite(fl) else ll
         return out
@@ -581,7 +591,12 @@ class AuxiliaryParticleFilter:
     ) -> None:
         """Step 4: kidnap recovery's verdict (``lino_loc.kidnap_recovery``), carried out; then
         a new belief's challenge by its rivals (:meth:`_challenge`; ``views``: the frame's
-        independent views)."""
+        independent views). An observation of several channels also gives recovery each
+        channel's view of the candidates and of the belief (``kidnap_recovery.ChannelView``)."""
+        per_channel = None
+        if mixture.channels and len(mixture.channels) > 1 and self._channel_ll:
+            per_channel = {name: ChannelView(_CameraLikelihood(m, pan), self._channel_ll[name])
+                           for name, m in mixture.channels.items() if name in self._channel_ll}
         verdict = self.recovery.observe(
             ll,
             mixture.novelty,
@@ -592,6 +607,8 @@ class AuxiliaryParticleFilter:
             n=self.n,
             draw=lambda m: self.sample_from_mixture(mixture, pan, m),
             rng=self.rng,
+            channels=per_channel,
+            views=views,
         )
         self._carry_out(verdict, mixture, pan)
         self._challenge(ll, floor, views, d, loglik, mixture, pan)

@@ -1,6 +1,7 @@
 """Kidnap recovery as a component (lino_loc.kidnap_recovery), without a filter: AMCL's averages
 against the closed form of the EMA, the lost-evidence count, the familiarity ramp, and the
-candidate set's life (drawn, adopted, dropped, forgotten on an appearance change)."""
+candidate set's life (drawn, adopted, dropped, forgotten on an appearance change), and the
+channels' agreement a jump needs (each channel's evidence, counted after one view)."""
 
 from __future__ import annotations
 
@@ -15,10 +16,12 @@ from lino_loc.kidnap_recovery import (
     CANDIDATE_MAX_UPDATES,
     CANDIDATE_MIN_UPDATES,
     MIN_UPDATES,
+    ChannelView,
     KidnapRecovery,
     RecoveryConfig,
     Verdict,
 )
+from lino_loc.lost_detection import independent_views
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 
 N = 100
@@ -189,3 +192,74 @@ def test_an_appearance_change_forgets_the_candidates_and_the_evidence() -> None:
     assert rec.candidates is None and rec.lost_updates == 0
     rec.reset()
     assert rec.candidate_draws == 0 and rec.log_w_slow == -math.inf
+
+
+def _channels(cand: dict[str, float], belief: dict[str, float]) -> dict[str, ChannelView]:
+    """Two channels whose log-likelihood is ``cand[name]`` at every pose, and whose belief's
+    log-likelihood of the view is ``belief[name]``."""
+    return {
+        name: ChannelView(lambda x, v=v: np.full(x.shape[0], v), belief[name])
+        for name, v in cand.items()
+    }
+
+
+def _observe_channels(rec, rng, channels, views=None):
+    """The fused view: the candidates 50 nats better than the belief (the fused test alone
+    adopts after CANDIDATE_MIN_UPDATES)."""
+    return rec.observe(
+        -50.0, 1.0, 0.0, delta=STEP, loglik=lambda x: np.zeros(x.shape[0]), converged=True,
+        n=N, draw=lambda m: np.zeros((m, 3)), rng=rng, channels=channels, views=views,
+    )
+
+
+def test_a_candidate_set_only_one_channel_prefers_is_not_adopted() -> None:
+    """A changed light: intensity prefers the candidates by 50 nats a view, disparity not at all;
+    the fused evidence clears the margin, the channels disagree: no adoption, dropped at the
+    end. With the channel test off (margin 0) the same views adopt at CANDIDATE_MIN_UPDATES."""
+    split = _channels({"intensity": 0.0, "disparity": -4.0}, {"intensity": -50.0, "disparity": -4.0})
+    rng = np.random.default_rng(8)
+    rec = _recovery()
+    _draw_candidates(rec, rng)
+    acts = [_observe_channels(rec, rng, split).action for _ in range(CANDIDATE_MAX_UPDATES)]
+    assert acts == ["none"] * (CANDIDATE_MAX_UPDATES - 1) + ["drop"] and rec.recoveries == 0
+    off = _recovery(channel_margin=0.0)
+    _draw_candidates(off, rng)
+    acts = [_observe_channels(off, rng, split).action for _ in range(CANDIDATE_MIN_UPDATES)]
+    assert acts[-1] == "adopt"
+
+
+def test_channel_evidence_counts_from_one_independent_view_after_the_draw() -> None:
+    """Both channels prefer the candidates, by 3 and 2 nats a view. STEP is 0.1 m + 0.02 rad
+    of the lost test's view scales (VIEW_XY, VIEW_THETA), so the first updates are the draw's
+    own view; from the first update with one view seen, each adds 3 and 2 nats exactly, and
+    the set is adopted at the first update where both exceed channel_margin (5 nats)."""
+    both = _channels({"intensity": -1.0, "disparity": -2.0}, {"intensity": -4.0, "disparity": -4.0})
+    per_frame = independent_views(STEP)
+    probation = math.ceil(1.0 / per_frame - 1e-12)  # updates until one view is seen
+    rng = np.random.default_rng(9)
+    rec = _recovery()
+    _draw_candidates(rec, rng)
+    acts, evidence = [], []
+    while not acts or acts[-1] == "none":
+        cs = rec.candidates
+        acts.append(_observe_channels(rec, rng, both).action)
+        evidence.append(dict(cs.channel_evidence))
+    counted = [e for e in evidence if e]
+    assert len(evidence) - len(counted) == probation
+    k = np.arange(1, len(counted) + 1)
+    assert [e["intensity"] for e in counted] == pytest.approx(3.0 * k)
+    assert [e["disparity"] for e in counted] == pytest.approx(2.0 * k)
+    assert acts[-1] == "adopt" and len(counted) == max(3, CANDIDATE_MIN_UPDATES - probation)
+
+
+def test_the_filters_views_replace_the_odometrys() -> None:
+    """A standing robot whose head turns: the frame's views come from the filter (pan changes),
+    not from the zero odometry increment."""
+    both = _channels({"intensity": 0.0, "disparity": 0.0}, {"intensity": -10.0, "disparity": -10.0})
+    rng = np.random.default_rng(10)
+    rec = _recovery()
+    _draw_candidates(rec, rng)
+    _observe_channels(rec, rng, both, views=1.0)
+    assert rec.candidates.seen == 1.0 and rec.candidates.channel_evidence == {}
+    _observe_channels(rec, rng, both, views=1.0)
+    assert rec.candidates.channel_evidence == pytest.approx({"intensity": 10.0, "disparity": 10.0})

@@ -315,6 +315,54 @@ def test_a_burst_of_consistent_wrong_views_does_not_capture_the_belief() -> None
     assert errors_amcl[30:45].max() > 2.0  # captured by the ghost (2.6-3.3 m over 3 seeds)
 
 
+def _two_channel_run(pf, model, f, *, horizon, kidnap_at=None, ghost_from=None, seed=2):
+    """As :func:`_kidnap_run`, with an observation of two channels fused by eq. 8 with weights
+    0.9 (intensity) and 0.1 (disparity): from ``ghost_from`` on, the INTENSITY channel sees the
+    ghost pose (a changed light misleads the appearance), the DISPARITY channel the truth; a
+    kidnapping moves both channels' views."""
+    from lino_loc.fusion import FusionConfig, fuse
+
+    rng = np.random.default_rng(seed)
+    truth = np.array([1.0, 1.0, 0.3])
+    pan = 0.4
+    errors = []
+    for t in range(horizon):
+        if t == kidnap_at:
+            truth = np.array([6.5, 3.0, -2.0])
+        truth, d = _drive(truth)
+        odo = d + rng.normal(0, [0.01, 0.01, 0.01])
+        disparity = model.observe(f(camera_pose(truth, pan))[0] + rng.normal(0, 0.05, 8))
+        intensity = model.observe(f(camera_pose(truth, pan))[0] + rng.normal(0, 0.05, 8))
+        if ghost_from is not None and t >= ghost_from:
+            ghost = truth + np.array([3.0, 1.5, 1.0])
+            intensity = model.observe(f(camera_pose(ghost, pan))[0] + rng.normal(0, 0.05, 8))
+        mixtures = {"intensity": intensity, "disparity": disparity}
+        fused = dataclasses.replace(fuse(mixtures, FusionConfig(w_i=0.9, w_d=0.1)), channels=mixtures)
+        pf.update(odo, pan, fused)
+        errors.append(float(np.hypot(*(pf.estimate().pose[:2] - truth[:2]))))
+    return np.array(errors)
+
+
+def test_a_jump_needs_every_channel() -> None:
+    """The intensity channel, weighted 0.9, shows a ghost moving with the odometry from update
+    30 on (a light switch that makes the views look like another place); the disparity channel
+    keeps seeing the truth. The belief's fused likelihood drops tenfold: a candidate set is
+    drawn at the ghost. Tested on the fused view alone (channel_margin 0) it is adopted (updates
+    80-87 over seeds 1-3); with the channel test (the default) it never is, and the belief
+    stays. A kidnapping, which moves both channels' views, is still recovered (by update 73)."""
+    model, f = _synthetic_model()
+    pf = _filter(n=800, seed=1)
+    errors = _two_channel_run(pf, model, f, horizon=100, ghost_from=30)
+    assert pf.recovery.candidate_draws >= 1 and pf.recovery.recoveries == 0
+    assert np.all(errors[25:] < 0.5), errors[25:]
+    fused_only = _filter(n=800, seed=1, recovery=RecoveryConfig(channel_margin=0.0))
+    errors0 = _two_channel_run(fused_only, model, f, horizon=100, ghost_from=30)
+    assert fused_only.recovery.recoveries >= 1 and errors0[-1] > 2.0, errors0[25:]
+    kidnapped = _filter(n=800, seed=1)
+    errors_k = _two_channel_run(kidnapped, model, f, horizon=100, kidnap_at=40)
+    assert kidnapped.recovery.recoveries == 1 and np.all(errors_k[80:] < 0.5), errors_k[40:]
+
+
 def test_novel_views_draw_no_candidates() -> None:
     """A kidnapping seen only through unfamiliar views (novelty 3, e.g. other light): the
     sensor model is not trusted for recovery; the filter says lost instead of jumping."""
