@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from world_checks import assert_change_shows, assert_lights_differ, grey_view
 
 from drivers.sim.lighting import bake, interior_walls
 from drivers.sim.renderer import CameraModel, Renderer
@@ -25,10 +26,6 @@ def corridor() -> World:
 @pytest.fixture(scope="module")
 def renderer(corridor: World) -> Renderer:
     return Renderer(corridor, CameraModel(width=64, height=48), lighting="tube")
-
-
-def _view(r: Renderer, x: float, y: float, theta: float) -> np.ndarray:
-    return r.render(x, y, theta, noise=False, stereo=False).grey.astype(np.float64)
 
 
 def _ncc(a: np.ndarray, b: np.ndarray) -> float:
@@ -51,13 +48,7 @@ def test_corridor_loads_with_the_lights_and_changes_of_the_other_worlds(corridor
 
 
 def test_renders_small_under_every_light_and_the_lights_differ(corridor: World) -> None:
-    views = {}
-    for light in corridor.lighting_names:
-        r = Renderer(corridor, CameraModel(width=48, height=36), lighting=light)
-        views[light] = _view(r, 2.0, 1.0, 0.0)
-        assert views[light].shape == (36, 48) and views[light].std() > 2.0
-    for a, b in (("tube", "bulb"), ("tube", "natural"), ("bulb", "natural")):
-        assert np.abs(views[a] - views[b]).mean() > 3.0, (a, b)
+    assert_lights_differ(corridor, (2.0, 1.0, 0.0))
 
 
 @pytest.mark.parametrize(
@@ -67,24 +58,16 @@ def test_renders_small_under_every_light_and_the_lights_differ(corridor: World) 
 def test_each_scene_change_moves_geometry_and_shows_in_a_view(
     corridor: World, renderer: Renderer, change: str, pose: tuple[float, float, float]
 ) -> None:
-    base = {(b.owner, round(b.cx, 3), round(b.cy, 3)) for b in corridor.geometry().boxes}
-    changed = {(b.owner, round(b.cx, 3), round(b.cy, 3)) for b in corridor.geometry((change,)).boxes}
-    assert base != changed
-    renderer.set_scene_changes(())
-    before = _view(renderer, *pose)
-    renderer.set_scene_changes((change,))
-    after = _view(renderer, *pose)
-    renderer.set_scene_changes(())
-    assert np.abs(before - after).mean() > 1.0
+    assert_change_shows(corridor, renderer, change, pose)
 
 
 def test_identical_doors_make_distant_views_alike(renderer: Renderer) -> None:
     # open doors s1 and s3 (7 m apart), closed doors s0 and s2: the same view
-    assert _ncc(_view(renderer, 5.25, 1.0, SOUTH), _view(renderer, 12.25, 1.0, SOUTH)) > 0.98
-    assert _ncc(_view(renderer, 1.75, 1.0, SOUTH), _view(renderer, 8.75, 1.0, SOUTH)) > 0.98
+    assert _ncc(grey_view(renderer, 5.25, 1.0, SOUTH), grey_view(renderer, 12.25, 1.0, SOUTH)) > 0.98
+    assert _ncc(grey_view(renderer, 1.75, 1.0, SOUTH), grey_view(renderer, 8.75, 1.0, SOUTH)) > 0.98
     # an open door against a closed one, the notice board against plain wall: different
-    assert _ncc(_view(renderer, 5.25, 1.0, SOUTH), _view(renderer, 1.75, 1.0, SOUTH)) < 0.8
-    assert _ncc(_view(renderer, 7.65, 1.0, NORTH), _view(renderer, 11.15, 1.0, NORTH)) < 0.5
+    assert _ncc(grey_view(renderer, 5.25, 1.0, SOUTH), grey_view(renderer, 1.75, 1.0, SOUTH)) < 0.8
+    assert _ncc(grey_view(renderer, 7.65, 1.0, NORTH), grey_view(renderer, 11.15, 1.0, NORTH)) < 0.5
 
 
 def _two_rooms(split: bool) -> World:

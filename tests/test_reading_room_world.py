@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+from world_checks import assert_change_shows, assert_lights_differ
 
 from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.world import World, grid_poses, load_world
@@ -18,10 +19,6 @@ from drivers.sim.world import World, grid_poses, load_world
 @pytest.fixture(scope="module")
 def room() -> World:
     return load_world("reading_room")
-
-
-def _view(r: Renderer, x: float, y: float, theta: float) -> np.ndarray:
-    return r.render(x, y, theta, noise=False, stereo=False).grey.astype(np.float64)
 
 
 def test_loads_with_the_lights_and_changes_of_the_other_worlds(room: World) -> None:
@@ -40,13 +37,7 @@ def test_loads_with_the_lights_and_changes_of_the_other_worlds(room: World) -> N
 
 
 def test_renders_under_every_light_and_the_lights_differ(room: World) -> None:
-    views = {}
-    for light in room.lighting_names:
-        r = Renderer(room, CameraModel(width=48, height=36), lighting=light)
-        views[light] = _view(r, 1.0, 2.2, math.pi)  # the windows of the west wall
-        assert views[light].shape == (36, 48) and views[light].std() > 2.0
-    for a, b in (("tube", "bulb"), ("tube", "natural"), ("bulb", "natural")):
-        assert np.abs(views[a] - views[b]).mean() > 3.0, (a, b)
+    assert_lights_differ(room, (1.0, 2.2, math.pi))  # the windows of the west wall
 
 
 @pytest.mark.parametrize(
@@ -56,13 +47,7 @@ def test_renders_under_every_light_and_the_lights_differ(room: World) -> None:
 def test_each_scene_change_moves_geometry_and_shows_in_a_view(
     room: World, change: str, pose: tuple[float, float, float]
 ) -> None:
-    base = {(b.owner, round(b.cx, 3), round(b.cy, 3)) for b in room.geometry().boxes}
-    changed = {(b.owner, round(b.cx, 3), round(b.cy, 3)) for b in room.geometry((change,)).boxes}
-    assert base != changed
-    r = Renderer(room, CameraModel(width=64, height=48), lighting="tube")
-    before = _view(r, *pose)
-    r.set_scene_changes((change,))
-    assert np.abs(before - _view(r, *pose)).mean() > 1.0
+    assert_change_shows(room, Renderer(room, CameraModel(width=64, height=48), lighting="tube"), change, pose)
 
 
 def test_the_tracking_evaluation_runs_on_the_reading_room() -> None:
