@@ -3,4 +3,6 @@
 source "$(dirname "$0")/_venv.sh"
 ruff check .
 lint-imports
-python -m pytest "$@"
+# Two workers by default (LINO_TEST_WORKERS=0: one process); whole files go to one worker, so a
+# module's fixtures are built once.
+python -m pytest -n "${LINO_TEST_WORKERS:-2}" --dist loadfile "$@"
