@@ -53,7 +53,7 @@ import numpy as np  # noqa: E402
 
 from drivers.sim.renderer import CameraModel, Renderer  # noqa: E402
 from drivers.sim.world import grid_poses, load_world  # noqa: E402
-from lino_loc.appearance_map import AppearanceMap  # noqa: E402
+from lino_loc.appearance_map import DISPARITY_EM_MAX_ITER, AppearanceMap  # noqa: E402
 from lino_loc.disparity import compute_disparity, downsample_sparse  # noqa: E402
 from lino_loc.fusion import fuse  # noqa: E402
 from lino_loc.localizer import Localizer, LocalizerConfig  # noqa: E402
@@ -147,7 +147,7 @@ def build(setup: SensorModelSetup, repeats: int) -> dict:
         tracemalloc.start()
         tracemalloc.reset_peak()
         t0, c0 = time.perf_counter(), time.process_time()
-        model = fit_pca_missing(X, setup.features, seed=setup.seed, max_iter=100, dtype=np.float32)
+        model = fit_pca_missing(X, setup.features, seed=setup.seed, max_iter=DISPARITY_EM_MAX_ITER, dtype=np.float32)
         model.project(X)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)

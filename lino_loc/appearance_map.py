@@ -1011,6 +1011,13 @@ def _disparity_rows(dataset: Dataset, size: tuple[int, int], min_valid_fraction:
     return X
 
 
+#: The iteration limit of the disparity channel's EM (:func:`lino_loc.pca_missing.fit_pca_missing`):
+#: a fit stopped at the limit is not the model's answer, and a map must carry the converged one.
+#: Chosen with margin over the iterations the tuned worlds' maps need (docs/results.md, "The
+#: disparity EM's iteration limit").
+DISPARITY_EM_MAX_ITER = 300
+
+
 def build_disparity_channel(
     dataset: Dataset,
     n_features: int = DEFAULT_FEATURES,
@@ -1019,7 +1026,7 @@ def build_disparity_channel(
     *,
     min_valid_fraction: float = 0.25,
     seed: int = 0,
-    max_iter: int = 100,
+    max_iter: int = DISPARITY_EM_MAX_ITER,
     virtual: VirtualHeadings | None = None,
     workers: int | None = None,
 ) -> ChannelMap:
@@ -1044,7 +1051,7 @@ def disparity_channel_from_vectors(
     source: str = "stereo-matcher",
     min_valid_fraction: float = 0.25,
     seed: int = 0,
-    max_iter: int = 100,
+    max_iter: int = DISPARITY_EM_MAX_ITER,
     virtual: VirtualHeadings | None = None,
 ) -> ChannelMap:
     """The disparity channel from working-size sparse vectors ``X`` (N, w*h), NaN = no value

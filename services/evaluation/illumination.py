@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.sim.world import grid_poses, load_world
+from lino_loc.appearance_map import DISPARITY_EM_MAX_ITER
 from lino_loc.pca import fit_pca
 from lino_loc.pca_missing import fit_pca_missing
 from services.evaluation.views import ViewSpec, render_vectors
@@ -94,7 +95,8 @@ def run(setup: IlluminationSetup, progress: Callable[[str, int, int], None] | No
     density: dict[str, float] = {}
     for row in rows:
         if row == "disparity":
-            model = fit_pca_missing(vectors["tube"][row], setup.features, seed=setup.seed)
+            model = fit_pca_missing(vectors["tube"][row], setup.features, seed=setup.seed,
+                                    max_iter=DISPARITY_EM_MAX_ITER)
             for light in ("tube", *setup.lights):
                 density[light] = float(np.isfinite(vectors[light][row]).mean())
         else:

@@ -57,7 +57,7 @@ from drivers.sim.code_fingerprint import code_fingerprint
 from drivers.sim.free_space import free_loop_box, superellipse
 from drivers.sim.renderer import CameraModel
 from drivers.sim.world import World, grid_poses, load_world
-from lino_loc.appearance_map import AppearanceMap, ChannelMap
+from lino_loc.appearance_map import DISPARITY_EM_MAX_ITER, AppearanceMap, ChannelMap
 from lino_loc.dataset import CameraInfo
 from lino_loc.disparity import StereoConfig
 from lino_loc.errors import LinoLocError
@@ -283,7 +283,7 @@ def disparity_map(
         except LinoLocError:
             pass
     X = survey_disparity_vectors(setup, world, poses, progress)
-    model = fit_pca_missing(X, setup.features, seed=setup.seed, max_iter=100, dtype=np.float32)
+    model = fit_pca_missing(X, setup.features, seed=setup.seed, max_iter=DISPARITY_EM_MAX_ITER, dtype=np.float32)
     Y = np.asarray(model.project(X), dtype=np.float32)
     ch = ChannelMap(name="disparity", preprocess="none", size=(w, h), pca=model, features=Y,
                     method="em-missing",
