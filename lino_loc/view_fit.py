@@ -23,7 +23,10 @@ v_t (``lino_loc.lost_detection.independent_views``), two rates are kept per chan
 - f_c, the recent fit: ``f <- a f + (1 - a) [hit]``, ``a = FIT_MEMORY ** v_t``, from 1 for a
   new belief (it fits until its views say otherwise).
 
-A channel is INFORMATIVE when rho_c >= ``informative_hit_rate``. The verdict
+A channel is INFORMATIVE when rho_c >= ``informative_hit_rate`` (R); with
+``informative_margin`` m > 0 the threshold has a hysteresis: a channel becomes informative at
+rho_c >= R + m and stays so while rho_c >= R, so that a rate hovering at R does not flip the
+verdict view by view. The verdict
 (:meth:`ViewFit.verdict`):
 
 - ``misfit``: some informative channel's recent views stop fitting, f_c < ``min_fit`` x
@@ -142,6 +145,11 @@ class ViewFitConfig(BaseModel):
         0.55, ge=0.0, le=1.0, description="a channel whose learnt hit rate of a trusted belief "
         "is at least this can confirm a pose; below it its views say too little",
     )
+    informative_margin: float = Field(
+        0.0, ge=0.0, le=1.0, description="hysteresis: a channel becomes informative when its "
+        "learnt hit rate reaches informative_hit_rate + this, and stays so until it falls below "
+        "informative_hit_rate",
+    )
     min_fit: float = Field(
         0.7, ge=0.0, le=1.0, description="an informative channel whose recent hit share falls "
         "below this share of its learnt hit rate no longer fits the belief: 'lost'",
@@ -169,6 +177,7 @@ class _ChannelFit:
     views: float = 0.0
     fit: float = 1.0  # f_c of the current belief
     heard: bool = False  # kept informative (``joint = "any"``, light-invariant channels)
+    informative: bool = False  # rho reached the informative rate (with its margin)
 
     @property
     def rho(self) -> float:
@@ -212,6 +221,7 @@ class ViewFit:
                 ch.hits = ch.views = 0.0
                 ch.fit = 1.0
                 ch.heard = False
+                ch.informative = ch.rho >= self.config.informative_hit_rate + self.config.informative_margin
 
     def update(
         self, excess: Mapping[str, float], views: float, learn: bool = True,
@@ -244,6 +254,8 @@ class ViewFit:
                 m = (MEMORY_SUSPECT if suspect else MEMORY) ** v
                 ch.hits = m * ch.hits + v * hit
                 ch.views = m * ch.views + v
+            r, m = self.config.informative_hit_rate, self.config.informative_margin
+            ch.informative = ch.rho >= r + m or (ch.informative and ch.rho >= r)
             if self.config.joint == "any" and name in LIGHT_INVARIANT:
                 r = ch.rho
                 ch.heard = r >= self.config.informative_hit_rate or (ch.heard and r >= HEARD_HIT_RATE)
@@ -258,13 +270,11 @@ class ViewFit:
         return max(seen)
 
     def _informative(self) -> list[_ChannelFit]:
-        r = self.config.informative_hit_rate
-        return [ch for ch in self.channels.values() if ch.rho >= r]
+        return [ch for ch in self.channels.values() if ch.informative]
 
     def _heard(self) -> list[_ChannelFit]:
         """The channels whose misfit counts: the informative ones and those kept heard."""
-        r = self.config.informative_hit_rate
-        return [ch for ch in self.channels.values() if ch.rho >= r or ch.heard]
+        return [ch for ch in self.channels.values() if ch.informative or ch.heard]
 
     def verdict(self) -> Verdict:
         """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring)."""

@@ -236,3 +236,30 @@ def test_with_joint_a_disparity_channel_once_informative_stays_heard() -> None:
     ch.hits = 0.45 * (ch.views + 1.0) - 0.5  # rate now between HEARD_HIT_RATE and informative
     alone.update({"disparity": HIT}, 1.0)
     assert ch.heard and HEARD_HIT_RATE < ch.rho < 0.55 and alone.verdict() == "uninformative"
+
+
+def test_the_informative_margin_is_a_hysteresis() -> None:
+    """With a margin m, a channel becomes informative at rho >= R + m and stays so down to R:
+    a rate hovering at R does not flip the verdict with every view."""
+    cfg = ViewFitConfig(informative_hit_rate=0.55, informative_margin=0.1)
+    fit, plain = ViewFit(cfg), ViewFit(ViewFitConfig(informative_hit_rate=0.55))
+    both = (fit, plain)
+    for f in both:  # a rate of 3 hits in 5 views: rho about 0.6, between R and R + m
+        _teach(f, {"disparity": [HIT, MISS, HIT, MISS, HIT]}, 20)
+    rho = fit.hit_rates()["disparity"]
+    assert 0.55 <= rho < 0.65
+    assert plain.verdict() != "uninformative"  # without a margin it is informative
+    assert fit.verdict() == "uninformative"  # not yet reached R + m
+    for f in both:
+        _teach(f, {"disparity": [HIT]}, 15)
+    assert fit.hit_rates()["disparity"] >= 0.65 and fit.verdict() == "confirmed"
+    for f in both:  # the rate falls back between R and R + m, the recent views fitting
+        _teach(f, {"disparity": [HIT, MISS, HIT, MISS, HIT]}, 20)
+        f.new_belief()
+    assert 0.55 <= fit.hit_rates()["disparity"] < 0.65
+    assert fit.verdict() == "confirmed"  # still informative: the hysteresis
+    for f in both:
+        _teach(f, {"disparity": [HIT, MISS, MISS, MISS]}, 20)
+        f.new_belief()
+    assert fit.hit_rates()["disparity"] < 0.55
+    assert fit.verdict() == plain.verdict() == "uninformative"
