@@ -14,6 +14,8 @@ same setup, maps and frames as the command; no without-recovery comparison) for 
   confident-wrong fraction exceeds 2 %, the uniform starts that converged, the mean
   ``tracking`` share by kind of run.
 
+A progress line per finished (world, seed) goes to stderr.
+
 Usage::
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/tracking_seeds.py --worlds lab,office,corridor \\
@@ -25,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -123,9 +126,13 @@ def main() -> None:
     configs = tuple(a.config or ["default"])
     jobs = [(w, int(s), configs) for w in a.worlds.split(",") for s in a.seeds.split(",")]
     rows: list[dict[str, Any]] = []
+    t0 = time.monotonic()
     with ProcessPoolExecutor(a.jobs) as ex:
-        for r in ex.map(one, jobs):
+        for i, r in enumerate(ex.map(one, jobs), 1):
             rows += r
+            w, s, _ = jobs[i - 1]
+            print(f"[{time.monotonic() - t0:6.0f} s] {i}/{len(jobs)} done: {w} seed {s}",
+                  file=sys.stderr, flush=True)
     out = {c: {"summary": summary([r for r in rows if r["config"] == c])} for c in configs}
     print(json.dumps({"configs": out, "runs": rows}, indent=1))
 

@@ -3,6 +3,7 @@ machinery (lengths, bounds, files), the convergence time, and the CLI."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 
@@ -13,6 +14,7 @@ from lino_loc.dataset import CameraInfo, DatasetMeta, DatasetWriter
 from lino_loc.localizer import LocalizerConfig
 from services.cli import main as cli_main
 from services.evaluation import global_loc, leave_out, tracking
+from services.evaluation.frame_trace import COLUMNS
 from services.evaluation.trajectories import read_tum
 from services.evaluation.views import build_sim_maps
 
@@ -144,6 +146,25 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
     np.testing.assert_array_equal(s_t, s_w)
     err_w = np.hypot(*(est_w[2:, :2] - truth[2:, :2]).T)
     assert err_w.mean() == pytest.approx(sw["mean_error_after_m"], abs=1e-5)
+
+    # per-frame traces of every run, read back by the csv module
+    traj = tmp_path / "traj"
+    assert sorted(p.name for p in traj.glob("*.trace.csv")) == sorted(
+        [f"{light}{kind}.trace.csv" for light in ("tube", "bulb") for kind in ("", "-uniform", "-kidnap")]
+        + ["switch-tube-bulb.trace.csv"])
+    with (traj / "tube.trace.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert tuple(rows[0]) == COLUMNS and len(rows) == 5
+    np.testing.assert_allclose([[float(r[k]) for k in ("x", "y", "theta")] for r in rows], est, atol=1e-6)
+    np.testing.assert_allclose([[float(r[k]) for k in ("truth_x", "truth_y", "truth_theta")] for r in rows],
+                               truth, atol=1e-6)  # the TUM file has 6 decimals
+    assert np.mean([float(r["error_m"]) for r in rows]) == pytest.approx(
+        res["conditions"]["tube"]["mean_error_m"], abs=1e-9)
+    assert all(r["state"] in ("global", "tracking", "lost") for r in rows)
+    assert all(0.0 <= float(r["quality"]) <= 1.0 and float(r["heading_error_rad"]) <= math.pi for r in rows)
+    assert all(r["rho_disparity"] == "" for r in rows)  # an intensity-only map: the column stays empty
+    with (traj / "bulb-kidnap.trace.csv").open(newline="") as f:
+        assert len(list(csv.DictReader(f))) == n_kidnap
 
 
 def test_kidnap_frames_jump_to_the_farthest_pose_of_the_last_quarter() -> None:

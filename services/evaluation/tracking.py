@@ -54,6 +54,7 @@ from drivers.sim.world import load_world
 from lino_loc.disparity import StereoConfig
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
+from services.evaluation.frame_trace import frame_row, write_trace
 from services.evaluation.global_loc import localizer_config
 from services.evaluation.honesty import honesty_metrics, lost_delays, quality_table
 from services.evaluation.trajectories import trajectory_names, write_tum
@@ -124,11 +125,13 @@ def converged_after(stamps: np.ndarray, err: np.ndarray, below: float, hold_s: f
 
 @dataclass
 class Run:
-    """One run of the filter: estimates (K, 3), states and the estimates' quality (K,)."""
+    """One run of the filter: estimates (K, 3), states and the estimates' quality (K,), and
+    with ``trace`` the per-frame diagnostics (``frame_trace.frame_row``)."""
 
     est: np.ndarray
     states: list[str]
     quality: np.ndarray
+    trace: list[dict[str, Any]] = field(default_factory=list)
 
 
 def run_filter(
@@ -141,11 +144,12 @@ def run_filter(
     seed: Any,
     frames: np.ndarray | None = None,
     disparities: np.ndarray | None = None,
+    trace: bool = False,
 ) -> Run:
     """One run over the frames of ``plan`` (global if start is None); ``frames`` the indices
     of the frames to use, in order (default: all), each with its own odometry increment;
     ``disparities`` (K, h, w), when given, go with the images (the map's disparity channel
-    observes them)."""
+    observes them); ``trace``: keep every frame's diagnostics in ``Run.trace``."""
     loc = Localizer(appearance_map, cfg, rng=np.random.default_rng(seed))
     if start is None:
         loc.start_global()
@@ -156,13 +160,16 @@ def run_filter(
     est = np.zeros((len(idx), 3))
     quality = np.full(len(idx), np.nan)
     states: list[str] = []
+    rows: list[dict[str, Any]] = []
     for j, k in enumerate(idx):
         d = None if disparities is None else disparities[k]
         e = loc.update(inc[k], 0.0, images[k], d, stamp=float(plan.stamps[j]))
         est[j] = e.pose
         quality[j] = e.quality
         states.append(e.state)
-    return Run(est, states, quality)
+        if trace:
+            rows.append(frame_row(loc, e))
+    return Run(est, states, quality, rows)
 
 
 def kidnap_frames(truth: np.ndarray) -> tuple[np.ndarray, int]:
@@ -255,6 +262,7 @@ def run(
     odo = plan.odometry
     start_cov = np.diag([setup.start_sigma_xy**2, setup.start_sigma_xy**2, math.radians(setup.start_sigma_deg) ** 2])
     out_dir = Path(trajectories) if trajectories is not None else None
+    traced = out_dir is not None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         write_tum(out_dir / "truth.tum", plan.stamps, truth, comment=f"true robot poses, world {setup.world}")
@@ -275,14 +283,21 @@ def run(
             kept[light] = (images, disps)
         for pre in setup.preprocess:
             amap = maps[pre]
-            run0 = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps)
+            name = light if len(setup.preprocess) == 1 else f"{light}-{pre}"
+            run0 = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps,
+                              trace=traced)
+            if out_dir is not None:
+                write_trace(out_dir / f"{name}.trace.csv", run0.trace, truth)
             est, states = run0.est, run0.states
             res: dict[str, Any] = {"condition": cond, **track_metrics(est, truth)}
             res["lost_fraction"] = float(np.mean([s == "lost" for s in states]))
             res.update(honesty_metrics(plan.stamps, position_errors(est, truth), states))
             graded.append((run0, truth))
             if setup.global_start:
-                grun = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2), disparities=disps)
+                grun = run_filter(amap, cfg, plan, images, None, None, (setup.seed, 2), disparities=disps,
+                                  trace=traced)
+                if out_dir is not None:
+                    write_trace(out_dir / f"{name}-uniform.trace.csv", grun.trace, truth)
                 gest, gstates = grun.est, grun.states
                 gerr = position_errors(gest, truth)
                 t_c = converged_after(plan.stamps, gerr, setup.converged_m, setup.converged_hold_s)
@@ -297,7 +312,9 @@ def run(
             if setup.kidnap and len(plan) >= 4:
                 frames, k_jump = kidnap_frames(truth)
                 krun = run_filter(amap, cfg, plan, images, truth[0], start_cov, (setup.seed, 3), frames=frames,
-                                  disparities=disps)
+                                  disparities=disps, trace=traced)
+                if out_dir is not None:
+                    write_trace(out_dir / f"{name}-kidnap.trace.csv", krun.trace, truth[frames])
                 res["kidnap"] = kidnap_metrics(plan, krun, frames, k_jump)
                 graded.append((krun, truth[frames]))
             if setup.compare_recovery:
@@ -313,12 +330,10 @@ def run(
                         plan.stamps, position_errors(gest0, truth), setup.converged_m, setup.converged_hold_s)
                 res["without_recovery"] = res0
                 if out_dir is not None:
-                    name = light if len(setup.preprocess) == 1 else f"{light}-{pre}"
                     write_tum(out_dir / trajectory_names(name + "-no-recovery")[0], plan.stamps, est0,
                               comment=f"estimate, {cond}, preprocess {pre}, known start, no kidnap recovery")
             by_pre[pre][light] = res
             if out_dir is not None:
-                name = light if len(setup.preprocess) == 1 else f"{light}-{pre}"
                 est_name, _ = trajectory_names(name)
                 write_tum(out_dir / est_name, plan.stamps, est,
                           comment=f"estimate, {cond}, preprocess {pre}, known start")
@@ -331,13 +346,15 @@ def run(
         (ia, da), (ib, db) = kept[switch[0]], kept[switch[1]]
         images = np.concatenate([ia[:k_sw], ib[k_sw:]])
         disps = None if da is None or db is None else np.concatenate([da[:k_sw], db[k_sw:]])
-        srun = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps)
+        srun = run_filter(maps[head], cfg, plan, images, truth[0], start_cov, (setup.seed, 1), disparities=disps,
+                          trace=traced)
         switched = {"lights": list(switch), **switch_metrics(plan.stamps, srun.est, truth, srun.states, k_sw),
                     **honesty_metrics(plan.stamps, position_errors(srun.est, truth), srun.states)}
         graded.append((srun, truth))
         if out_dir is not None:
             write_tum(out_dir / trajectory_names(f"switch-{switch[0]}-{switch[1]}")[0], plan.stamps, srun.est,
                       comment=f"estimate, lights {switch[0]} -> {switch[1]} at frame {k_sw}, known start")
+            write_trace(out_dir / f"switch-{switch[0]}-{switch[1]}.trace.csv", srun.trace, truth)
         log.info("tracking, lights %s -> %s at %.0f s: mean error after %.3f m, lost after %.1f %%", *switch,
                  switched["switch_at_s"], switched["mean_error_after_m"], 100 * switched["lost_fraction_after"])
     result: dict[str, Any] = {

@@ -338,7 +338,8 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-kidnap", action="store_true",
                    help="skip the runs with a kidnapping halfway (the robot carried a quarter of the drive ahead)")
     p.add_argument("--trajectories", default=None, metavar="DIR",
-                   help="write estimated and true trajectories (TUM format) to DIR")
+                   help="write estimated and true trajectories (TUM format) and per-frame traces of every "
+                   "run (CSV: errors, state, quality and the self-checks) to DIR")
     add_channels_option(p, ",".join(DEFAULT_CHANNELS))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None)
