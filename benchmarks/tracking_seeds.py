@@ -9,10 +9,11 @@ same setup, maps and frames as the command; no without-recovery comparison) for 
 - ``runs``: per world, seed and run (known start, uniform start, kidnap per light, and the
   light switch) the mean error, ``confident_wrong_fraction``, the episodes of error above 1 m
   and how many left ``tracking`` within 5 s, the share of frames ``tracking``, and for the
-  uniform starts the time to converge (error) and to the first ``tracking`` frame;
+  uniform starts the time to converge (error) and to the first ``tracking`` frame, and how
+  often the state changed (``state_changes_per_min``);
 - ``summary``: over all runs, the episodes caught within 5 s, the runs whose
   confident-wrong fraction exceeds 2 %, the uniform starts that converged, the mean
-  ``tracking`` share by kind of run.
+  ``tracking`` share and state changes per minute by kind of run.
 
 A progress line per finished (world, seed) goes to stderr.
 
@@ -44,6 +45,7 @@ def _row(world: str, seed: int, name: str, res: dict[str, Any]) -> dict[str, Any
         "mean_error_m": res.get("mean_error_m", res.get("mean_error_after_m")),
         "confident_wrong_fraction": res["confident_wrong_fraction"],
         "tracking_fraction": res["tracking_fraction"],
+        "state_changes_per_min": res["state_changes_per_min"],
         "episodes": d["episodes"],
         "caught_within_5s": round(d["caught_within_s_share"] * d["episodes"]),
     }
@@ -108,6 +110,9 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "max_confident_wrong_fraction": max(r["confident_wrong_fraction"] for r in rows),
         "uniform_converged": sum(r["converged_after_s"] is not None for r in uniform),
         "uniform_runs": len(uniform),
+        "state_changes_per_min_by_kind": {
+            k: sum(r["state_changes_per_min"] for r in rows if r["run"].endswith(k)) /
+            max(1, sum(r["run"].endswith(k) for r in rows)) for k in kinds},
         "tracking_fraction_by_kind": {
             k: sum(r["tracking_fraction"] for r in rows if r["run"].endswith(k)) /
             max(1, sum(r["run"].endswith(k) for r in rows)) for k in kinds},

@@ -71,6 +71,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from lino_loc import __version__
@@ -193,6 +194,18 @@ class ChannelMap:
         """Features (d,) of one observation (eq. 1): an image for intensity, a disparity map
         (float pixels, NaN = none) for disparity."""
         return self.kind.project(self, observation)
+
+    def observed_rows(self) -> NDArray[np.bool_]:
+        """Which map entries this channel observed (N,): every entry for intensity; for
+        disparity the entries whose image had at least one valid block. EM-PCA with missing
+        data gives an image with no valid pixel zero features (``MissingDataPCA.project``),
+        the prior mean: no observation, just as a query with none is dropped (NaN features,
+        see ``_disparity_project``). Such entries, e.g. a camera facing a blank wall at close
+        range, all share the same features and would otherwise tie in a J-nearest search."""
+        f = np.asarray(self.features)
+        if self.name != "disparity":
+            return np.ones(f.shape[0], dtype=bool)
+        return np.asarray(np.any(f != 0, axis=1), dtype=bool)
 
 
 @dataclass(frozen=True)

@@ -104,11 +104,16 @@ class Localizer:
         if "intensity" not in channels:
             raise LinoLocError(f"appearance map: no 'intensity' channel (has {sorted(channels)})")
         self.bounds = Bounds.from_poses(poses, self.config.sensor.map_margin)
-        self.models: dict[str, NearestNeighbourSensorModel | InterpolatedSensorModel] = {
-            name: self._model(poses, np.asarray(ch.features))
-            for name, ch in channels.items()
-            if name in ("intensity", "disparity")
-        }
+        self.models: dict[str, NearestNeighbourSensorModel | InterpolatedSensorModel] = {}
+        for name, ch in channels.items():
+            if name not in ("intensity", "disparity"):
+                continue
+            feats = np.asarray(ch.features)
+            keep = self._searched_rows(ch, feats.shape[0])
+            if not keep.any():
+                log.warning("appearance map: the %s channel observed no map entry; not used", name)
+                continue
+            self.models[name] = self._model(poses[keep], feats[keep])
         self.channels = channels
         #: the intensity channel's novelty of the last frame used (``PoseMixture.novelty``; nan:
         #: no image, or no intensity features); read by active vision's per-pan reliability
@@ -127,6 +132,16 @@ class Localizer:
             free_space=free_space,
             rng=seed_rng,
         )
+
+    def _searched_rows(self, channel: ChannelLike, n: int) -> NDArray[np.bool_]:
+        """The map entries a channel's nearest-neighbour model searches: those the channel
+        observed (``ChannelMap.observed_rows``: a disparity channel leaves out the entries
+        with no valid stereo match, whose zero features are no observation). The interpolated
+        model needs the whole survey lattice and keeps every entry."""
+        rows = getattr(channel, "observed_rows", None)
+        if self.config.sensor_model == "interpolated" or not callable(rows):
+            return np.ones(n, dtype=bool)
+        return np.asarray(rows(), dtype=bool).reshape(n)
 
     def _model(
         self, poses: FloatArray, features: FloatArray

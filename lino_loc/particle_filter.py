@@ -47,8 +47,9 @@ lost test has since found the views contradicting the belief). The REPORTED stat
 (:attr:`AuxiliaryParticleFilter.state`, the estimate's) is also ``tracking`` only while the
 views confirm the belief (``lino_loc.view_fit``, per channel of the observation): views
 that cannot confirm any pose report it ``global``, an informative channel whose views stop
-fitting ``lost``; the filter's own steps (what the lost test learns from) use the state
-above. The estimate's ``quality`` is ``lino_loc.quality``'s.
+fitting ``lost``, and it changes only once a new state has lasted ``state_hold`` updates
+(``lino_loc.state_hold``; 1 by default: at once); the filter's own steps (what the lost test
+learns from) use the state above. The estimate's ``quality`` is ``lino_loc.quality``'s.
 
 Only the filter assigns its particles, weights and state; the components keep their own
 state and are told what happened.
@@ -106,6 +107,7 @@ from lino_loc.poses import wrap_angle
 from lino_loc.quality import estimate_quality
 from lino_loc.resampling import Resampler, get_resampler, logsumexp
 from lino_loc.sensor_model import Bounds, PoseMixture
+from lino_loc.state_hold import StateHold
 from lino_loc.view_fit import ViewFit, ViewFitConfig
 from lino_loc.weights import NoFiniteWeightError, Weights
 
@@ -243,6 +245,13 @@ class FilterConfig(BaseModel):
     appearance_change: AppearanceChangeConfig = Field(default_factory=AppearanceChangeConfig)
     view_fit: ViewFitConfig = Field(default_factory=ViewFitConfig)
     estimate: EstimateConfig = Field(default_factory=EstimateConfig)
+    # 1 (no hold) by default: a longer hold flickers less but reports a loss later, and the
+    # tracking evaluation's confident-wrong frames grow (docs/results.md, "A hold on the
+    # reported state")
+    state_hold: int = Field(
+        1, ge=1, description="the reported state changes only once a new state has lasted this "
+        "many consecutive updates with an image (lino_loc.state_hold); 1: at once",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -277,6 +286,7 @@ class AuxiliaryParticleFilter:
         c = self.config
         self.lost_detector = LostDetector(c.lost)
         self.view_fit = ViewFit(c.view_fit)
+        self._hold = StateHold(c.state_hold)
         self.recovery = KidnapRecovery(c.recovery, motion_model, self._resample)
         self.challenge = BeliefChallenge(c.challenge, motion_model, self._resample)
         self.appearance_watch = AppearanceChangeDetector() if c.appearance_change.enabled else None
@@ -351,6 +361,7 @@ class AuxiliaryParticleFilter:
         self.challenge.reset()
         self.lost_detector.reset()
         self.view_fit.reset()
+        self._hold.reset("global")
 
     def _uniform(self, n: int) -> FloatArray:
         """n poses uniform over the bounds (and the free space, by rejection) and all headings."""
@@ -402,6 +413,7 @@ class AuxiliaryParticleFilter:
         self.challenge.waive()
         self.view_fit.trust()
         self._state = "tracking"
+        self._hold.reset(self._proposed_state())
 
     def set_particles(self, particles: ArrayLike, log_weights: ArrayLike | None = None) -> None:
         """Replace the particle set (for tests and for restoring a saved belief); log-weights
@@ -790,6 +802,7 @@ class AuxiliaryParticleFilter:
             self._recall_run = None if self._recall_run is None else 0.0
             self.challenge.stop()
             self._state = "global"
+        self._hold.offer(self._proposed_state())
 
     def _confirmed(self) -> bool:
         """The views' confirmation of the converged belief (:attr:`LostDetector.confirmed`);
@@ -801,10 +814,15 @@ class AuxiliaryParticleFilter:
 
     @property
     def state(self) -> State:
-        """The reported state: the lost test's (``global`` / ``tracking`` / ``lost``), and a
-        ``tracking`` belief only while the views confirm it (``lino_loc.view_fit``): views
-        that cannot confirm any pose make it ``global``, an informative channel that stops
-        fitting makes it ``lost``. The filter's own steps use the lost test's state."""
+        """The reported state: :meth:`_proposed_state` under the hold of ``state_hold``
+        updates (``lino_loc.state_hold``; with a hold of 1, the proposed state itself)."""
+        return self._proposed_state() if self._hold.hold == 1 else self._hold.reported
+
+    def _proposed_state(self) -> State:
+        """The lost test's state (``global`` / ``tracking`` / ``lost``), and a ``tracking``
+        belief only while the views confirm it (``lino_loc.view_fit``): views that cannot
+        confirm any pose make it ``global``, an informative channel that stops fitting makes
+        it ``lost``. The filter's own steps use the lost test's state."""
         s = self._state
         if s != "tracking" or not self.config.view_fit.enabled:
             return s

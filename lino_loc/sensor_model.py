@@ -711,7 +711,10 @@ class NearestNeighbourSensorModel:
         only selects the J entries;
         their squared distances are then computed one way for both, sum_k (f_k - y_k)^2, so the
         answer does not depend on which search "auto" chose (it times them on the machine it
-        runs on): a replay of a recording gives the same weights to the bit."""
+        runs on): a replay of a recording gives the same weights to the bit. Except for
+        identical map rows: they tie, and which of them enter the J set depends on the search.
+        The Localizer leaves out the disparity channel's entries with no stereo match
+        (``ChannelMap.observed_rows``), the identical rows a survey makes."""
         q = np.atleast_2d(np.asarray(y, dtype=np.float64))
         if q.shape[1] != self.dim:
             raise LinoLocError(f"observed features: expected {self.dim} values, got {q.shape[1]}")

@@ -33,3 +33,14 @@ def test_a_fit_stopped_at_its_limit_is_marked_unconverged() -> None:
     ch = disparity_channel_from_vectors(X, (16, 12), 6, max_iter=2)
     assert ch.pca is not None
     assert not ch.pca.converged and ch.pca.n_iter == 2
+
+
+def test_entries_with_no_valid_pixel_are_marked_unobserved() -> None:
+    X = _sparse_disparity()
+    X[[3, 50, 51]] = np.nan  # three views with no stereo match at all
+    ch = disparity_channel_from_vectors(X, (16, 12), 6)
+    rows = ch.observed_rows()
+    empty = ~np.isfinite(X).any(axis=1)  # these three and the ones the generator left empty
+    assert empty[[3, 50, 51]].all()
+    np.testing.assert_array_equal(rows, ~empty)
+    np.testing.assert_array_equal(ch.features[[3, 50, 51]], 0.0)  # the prior mean: no observation

@@ -13,6 +13,7 @@ from services.evaluation.honesty import (
     lost_delay_summary,
     lost_delays,
     quality_table,
+    state_changes_per_min,
     wrong_episodes,
 )
 
@@ -114,3 +115,14 @@ def test_quality_table_bands() -> None:
     assert rows[0]["wrong_fraction"] == pytest.approx(0.5) and rows[0]["tracking_fraction"] == 0.0
     assert rows[1]["mean_error_m"] is None
     assert rows[4]["median_error_m"] == pytest.approx(0.2) and rows[4]["tracking_fraction"] == 1.0
+
+
+def test_state_changes_per_min_counts_the_frames_that_change_state() -> None:
+    stamps = np.arange(13) * 5.0  # one minute
+    states = ["global"] * 3 + ["tracking"] * 4 + ["lost", "tracking"] * 3
+    assert state_changes_per_min(stamps, states) == pytest.approx(7.0)  # 1 + 6 changes in 60 s
+    assert state_changes_per_min(stamps[:7], states[:7]) == pytest.approx(2.0)  # 1 in 30 s
+    assert state_changes_per_min([0.0], ["lost"]) == 0.0
+    assert state_changes_per_min([1.0, 1.0], ["lost", "tracking"]) == 0.0  # no span
+    with pytest.raises(ValueError, match="differ in length"):
+        state_changes_per_min([0.0, 1.0], ["lost"])

@@ -293,3 +293,41 @@ def test_the_default_sensor_model_is_the_nearest_neighbour_one() -> None:
     assert LocalizerConfig().sensor_model == "nearest_neighbour"
     with pytest.raises(ValidationError):
         LocalizerConfig(sensor_model="nearest")
+
+
+def test_disparity_entries_with_no_stereo_match_are_not_searched() -> None:
+    """Map entries whose disparity image had no valid block carry zero features (the EM
+    projection's prior mean): the disparity channel's model leaves them out, so a view near
+    the mean is never matched to them, and brute force and the KD-tree answer alike (those
+    entries all tie)."""
+    from lino_loc import appearance_map as am
+
+    m, f_img, f_disp = _world(with_disparity=True)
+    feats = np.asarray(m.channels["disparity"].features, dtype=np.float32).copy()
+    blank = np.zeros(len(feats), dtype=bool)
+    blank[np.random.default_rng(4).choice(len(feats), 60, replace=False)] = True
+    feats[blank] = 0.0
+    disp = am.ChannelMap(name="disparity", preprocess="none", size=(5, 2), pca=None, features=feats)
+    np.testing.assert_array_equal(disp.observed_rows(), ~blank)
+    real = TinyMap(m.poses, {"intensity": m.channels["intensity"], "disparity": disp})
+    answers = []
+    for index in ("brute", "kdtree"):
+        cfg = _config()
+        cfg.sensor.index = index
+        loc = Localizer(real, cfg)
+        model = loc.sensor_model("disparity")
+        assert len(model.poses) == int((~blank).sum())
+        assert len(loc.sensor_model("intensity").poses) == len(m.poses)
+        mix = model.observe(np.zeros(feats.shape[1]))  # a view at the prior mean
+        kept = {tuple(p) for p in np.round(m.poses[~blank], 9)}
+        assert all(tuple(p) in kept for p in np.round(mix.poses, 9))
+        answers.append(mix.poses)
+    np.testing.assert_array_equal(answers[0], answers[1])
+
+
+def test_every_map_entry_is_searched_by_the_intensity_channel() -> None:
+    from lino_loc import appearance_map as am
+
+    feats = np.zeros((4, 3), dtype=np.float32)
+    chan = am.ChannelMap(name="intensity", preprocess="none", size=(3, 1), pca=None, features=feats)
+    assert chan.observed_rows().all()

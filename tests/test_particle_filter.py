@@ -20,6 +20,7 @@ from lino_loc.particle_filter import (
 from lino_loc.poses import camera_pose, compose, wrap_angle
 from lino_loc.resampling import systematic
 from lino_loc.sensor_model import Bounds, NearestNeighbourSensorModel, SensorModelConfig
+from lino_loc.state_hold import StateHold
 from lino_loc.weights import Weights
 
 
@@ -289,6 +290,19 @@ def test_global_localization_then_kidnap_recovery() -> None:
     assert np.all(errors[kidnap_at + 45 :] < 0.5), errors[kidnap_at:]
     assert pf.recovery.recoveries == 1 and pf.recovery.candidate_draws == 1
     assert states[-1] == "tracking"
+
+
+def test_the_state_hold_changes_what_is_reported_and_nothing_else() -> None:
+    """The same run under holds of 1 and 3 updates: the same estimates, and the reported states
+    of the held run are the hold applied to the other's (lino_loc.state_hold)."""
+    model, f = _synthetic_model()
+    err1, states1 = _kidnap_run(_filter(n=800, seed=1, state_hold=1), model, f)
+    err3, states3 = _kidnap_run(_filter(n=800, seed=1, state_hold=3), model, f)
+    np.testing.assert_array_equal(err1, err3)
+    hold = StateHold(3, "global")
+    assert states3 == [hold.offer(s) for s in states1]
+    changes = sum(a != b for a, b in zip(states1, states1[1:], strict=False))
+    assert changes >= 2 and states3 != states1  # the run changes state, and the hold shows
 
 
 def test_amcl_recovery_is_faster_but_trusts_every_view() -> None:

@@ -26,6 +26,9 @@ optionally the estimate's ``quality`` q_k in [0, 1].
   ``tracking``), ``caught_within_s_share`` (share of the episodes caught within ``within_s``,
   :data:`WITHIN_S` = 5 s, delay <= within_s; 1.0 when there is no episode), ``median_s`` and
   ``max_s`` of the delays (uncaught ones counted with their duration; None without episodes).
+- :func:`state_changes_per_min`: how often the state changes (frames whose state differs from
+  the previous frame's, per minute of the run): a state that flickers between ``tracking``
+  and ``lost`` every few frames tells a client little, whatever the error.
 - :func:`quality_table`: the error by band of quality ([0, 0.2), [0.2, 0.4), ..., [0.8, 1.0]
   by default): frames, mean and median error, share of frames with error above wrong_m, and
   the share of frames ``tracking``. A calibrated quality has errors falling from band to band.
@@ -122,13 +125,28 @@ def lost_delay_summary(
     }
 
 
+def state_changes_per_min(stamps: ArrayLike, states: Sequence[str]) -> float:
+    """Frames whose state differs from the previous frame's, per minute from the first to the
+    last stamp (0 for fewer than two frames or a zero span)."""
+    t = np.asarray(stamps, dtype=np.float64).reshape(-1)
+    if len(states) != t.size:
+        raise ValueError(f"stamps and states differ in length: {t.size}, {len(states)}")
+    span = float(t[-1] - t[0]) if t.size >= 2 else 0.0
+    if span <= 0.0:
+        return 0.0
+    changes = sum(a != b for a, b in zip(states[:-1], states[1:], strict=True))
+    return 60.0 * changes / span
+
+
 def honesty_metrics(stamps: ArrayLike, errors: ArrayLike, states: Sequence[str]) -> dict[str, Any]:
     """``tracking_fraction`` (the share of frames ``tracking``: what honesty costs),
-    ``confident_wrong_fraction`` and ``lost_delay_s`` (:func:`lost_delay_summary`) of one run."""
+    ``confident_wrong_fraction``, ``lost_delay_s`` (:func:`lost_delay_summary`) and
+    ``state_changes_per_min`` (:func:`state_changes_per_min`) of one run."""
     return {
         "tracking_fraction": float(np.mean([s == "tracking" for s in states])) if len(states) else 0.0,
         "confident_wrong_fraction": confident_wrong_fraction(errors, states),
         "lost_delay_s": lost_delay_summary(stamps, errors, states),
+        "state_changes_per_min": state_changes_per_min(stamps, states),
     }
 
 
