@@ -22,6 +22,7 @@ from services.evaluation.sensor_model_error import (
     default_path_box,
     errors_eq10,
     errors_eq10_pose,
+    evaluate_condition,
     fused_points,
     grid_limit,
     path_poses,
@@ -77,6 +78,26 @@ def test_j_split_5_plus_5_gives_the_10_map_points_of_both_channels() -> None:
     # another split: 3 + 7 is still 10 points
     pts37, _ = fused_points(mi, md, yi, yd, FusionConfig(j_intensity=3, j_disparity=7))
     assert pts37.shape == (7, 10, 3)
+
+
+def test_disparity_entries_the_channel_did_not_observe_are_never_its_points() -> None:
+    """As in the Localizer: the disparity model searches only the entries it observed."""
+    rng = np.random.default_rng(5)
+    n = 300
+    poses = np.column_stack([rng.uniform(0, 9, n), rng.uniform(0, 5, n), rng.uniform(-np.pi, np.pi, n)])
+    fi, fd = rng.standard_normal((n, 6)), rng.standard_normal((n, 4))
+    blank = rng.random(n) < 0.2
+    fd[blank] = 0.0  # no stereo match: the EM projection's prior mean
+    truths = poses[:9] + np.array([0.1, 0.1, 0.0])
+    yi, yd = fi[:9] + 0.01, 0.01 * rng.standard_normal((9, 4))  # disparity views near the mean
+    setup = SensorModelSetup(j=10, j_intensity=5, j_disparity=5)
+    res = evaluate_condition(truths, poses, yi, fi, yd, fd, setup, map_rows_d=~blank)
+    md = NearestNeighbourSensorModel(poses[~blank], fd[~blank], SensorModelConfig(j=10))
+    idx, _ = md.neighbours(yd)
+    want = errors_eq10(truths, poses[~blank][idx])
+    np.testing.assert_allclose(res["disparity"]["errors_m"], np.round(want, 4))
+    everything = evaluate_condition(truths, poses, yi, fi, yd, fd, setup)  # the blanks are searched
+    assert everything["disparity"]["errors_m"] != res["disparity"]["errors_m"]
 
 
 # --------------------------------------------------------------------------- the path

@@ -349,18 +349,24 @@ def evaluate_condition(
     feats_d: np.ndarray,
     map_feats_d: np.ndarray,
     setup: SensorModelSetup,
+    map_rows_d: np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """Eq. 10 along the path for one light: intensity J = j, fused j_i + j_d, and extras."""
+    """Eq. 10 along the path for one light: intensity J = j, fused j_i + j_d, and extras.
+    ``map_rows_d`` (N,) bool: the map entries the disparity channel observed
+    (``ChannelMap.observed_rows``), the only ones its model searches, as in the Localizer
+    (None: all)."""
     truths = np.asarray(truths, dtype=np.float64)
     cfg = SensorModelConfig(j=setup.j)
     model_i = NearestNeighbourSensorModel(map_poses, map_feats_i, cfg)
-    model_d = NearestNeighbourSensorModel(map_poses, map_feats_d, cfg, bounds=model_i.bounds)
+    keep = np.ones(len(map_poses), dtype=bool) if map_rows_d is None else np.asarray(map_rows_d, dtype=bool)
+    poses_d = map_poses[keep]
+    model_d = NearestNeighbourSensorModel(poses_d, map_feats_d[keep], cfg, bounds=model_i.bounds)
     fusion = FusionConfig(mode="disjunctive", w_i=setup.w_i, w_d=setup.w_d,
                           j_intensity=setup.j_intensity, j_disparity=setup.j_disparity)
     idx_i, _ = model_i.neighbours(feats_i, setup.j)
     idx_d, _ = model_d.neighbours(feats_d, setup.j)
     pts_i = map_poses[idx_i]
-    pts_d = map_poses[idx_d]
+    pts_d = poses_d[idx_d]
     pts_f, w_f = fused_points(model_i, model_d, feats_i, feats_d, fusion)
     dist_f = np.sqrt(((pts_f[..., :2] - truths[:, None, :2]) ** 2).sum(-1))
     e_f = errors_eq10(truths, pts_f)
@@ -436,7 +442,8 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
             yi = ch.pca.project(vec[pre])
             res = evaluate_condition(truths, poses, np.asarray(yi, dtype=np.float64),
                                      np.asarray(ch.features, dtype=np.float64), np.asarray(yd, dtype=np.float64),
-                                     np.asarray(dch.features, dtype=np.float64), setup)
+                                     np.asarray(dch.features, dtype=np.float64), setup,
+                                     map_rows_d=dch.observed_rows())
             by_pre[pre][light] = res
         conditions[light] = by_pre[setup.preprocess][light]
 
