@@ -200,8 +200,8 @@ class ChannelMap:
         disparity the entries whose image had at least one valid block. EM-PCA with missing
         data gives an image with no valid pixel zero features (``MissingDataPCA.project``),
         the prior mean: no observation, just as a query with none is dropped (NaN features,
-        see ``_disparity_project``). Such entries, e.g. a camera facing a blank wall at close
-        range, all share the same features and would otherwise tie in a J-nearest search."""
+        see ``_disparity_project``). Such entries all share the same features and would
+        otherwise tie in a J-nearest search."""
         f = np.asarray(self.features)
         if self.name != "disparity":
             return np.ones(f.shape[0], dtype=bool)
