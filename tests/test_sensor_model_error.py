@@ -100,6 +100,28 @@ def test_disparity_entries_the_channel_did_not_observe_are_never_its_points() ->
     assert everything["disparity"]["errors_m"] != res["disparity"]["errors_m"]
 
 
+def test_a_view_without_disparity_is_fused_from_intensity_alone() -> None:
+    """As in the Localizer: a test view with no valid disparity block has no disparity channel."""
+    rng = np.random.default_rng(6)
+    n = 300
+    poses = np.column_stack([rng.uniform(0, 9, n), rng.uniform(0, 5, n), rng.uniform(-np.pi, np.pi, n)])
+    fi, fd = rng.standard_normal((n, 6)), rng.standard_normal((n, 4))
+    truths = poses[:8] + np.array([0.2, -0.1, 0.05])
+    yi, yd = fi[:8] + 0.3 * rng.standard_normal((8, 6)), fd[:8] + 0.01
+    seen = np.array([True, False, True, True, False, True, True, True])
+    setup = SensorModelSetup(j=10, j_intensity=5, j_disparity=5)
+    res = evaluate_condition(truths, poses, yi, fi, yd, fd, setup, observed_d=seen)
+    full = evaluate_condition(truths, poses, yi, fi, yd, fd, setup)
+    f, i = np.array(res["fused"]["errors_m"]), np.array(res["intensity"]["errors_m"])
+    np.testing.assert_array_equal(f[~seen], i[~seen])  # intensity alone, J = j
+    np.testing.assert_array_equal(f[seen], np.array(full["fused"]["errors_m"])[seen])
+    assert res["fused"]["views_without_disparity"] == 2
+    assert res["disparity"]["views"] == 6 and len(res["disparity"]["errors_m"]) == 6
+    np.testing.assert_array_equal(res["disparity"]["errors_m"], np.array(full["disparity"]["errors_m"])[seen])
+    none = evaluate_condition(truths, poses, yi, fi, yd, fd, setup, observed_d=np.zeros(8, dtype=bool))
+    assert none["disparity"]["mean_m"] is None and none["fused"]["errors_m"] == res["intensity"]["errors_m"]
+
+
 # --------------------------------------------------------------------------- the path
 def test_path_is_regular_off_grid_free_and_headed_along() -> None:
     world = load_world("lab")

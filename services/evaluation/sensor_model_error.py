@@ -209,9 +209,12 @@ def errors_eq10_pose(truths: np.ndarray, neighbour_poses: np.ndarray) -> np.ndar
     return np.sqrt((d * d).sum(-1)).min(axis=1)
 
 
-def summary(errors: np.ndarray) -> dict[str, float]:
-    """Mean, population standard deviation and median of per-pose errors, metres."""
+def summary(errors: np.ndarray) -> dict[str, float | None]:
+    """Mean, population standard deviation and median of per-pose errors, metres (None
+    without any pose)."""
     e = np.asarray(errors, dtype=np.float64)
+    if e.size == 0:
+        return {"mean_m": None, "std_m": None, "median_m": None}
     return {"mean_m": float(e.mean()), "std_m": float(e.std()), "median_m": float(np.median(e))}
 
 
@@ -334,8 +337,9 @@ def fused_points(
 def _block(errors: np.ndarray, pose_errors: np.ndarray | None = None, **extra: Any) -> dict[str, Any]:
     out: dict[str, Any] = summary(errors)
     if pose_errors is not None:
-        out["mean_xyt"] = float(np.mean(pose_errors))
-        out["std_xyt"] = float(np.std(pose_errors))
+        pe = np.asarray(pose_errors, dtype=np.float64)
+        out["mean_xyt"] = float(pe.mean()) if pe.size else None
+        out["std_xyt"] = float(pe.std()) if pe.size else None
     out.update(extra)
     out["errors_m"] = [round(float(v), 4) for v in errors]
     return out
@@ -350,11 +354,15 @@ def evaluate_condition(
     map_feats_d: np.ndarray,
     setup: SensorModelSetup,
     map_rows_d: np.ndarray | None = None,
+    observed_d: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Eq. 10 along the path for one light: intensity J = j, fused j_i + j_d, and extras.
-    ``map_rows_d`` (N,) bool: the map entries the disparity channel observed
-    (``ChannelMap.observed_rows``), the only ones its model searches, as in the Localizer
-    (None: all)."""
+
+    As in the Localizer: ``map_rows_d`` (N,) bool, the map entries the disparity channel
+    observed (``ChannelMap.observed_rows``), are the only ones its model searches, and a test
+    view whose disparity map has no valid block (``observed_d`` (M,) False) is not observed
+    by that channel: its fused model is the intensity one (J = j), and the disparity blocks
+    leave it out (``views``). None: all."""
     truths = np.asarray(truths, dtype=np.float64)
     cfg = SensorModelConfig(j=setup.j)
     model_i = NearestNeighbourSensorModel(map_poses, map_feats_i, cfg)
@@ -363,29 +371,41 @@ def evaluate_condition(
     model_d = NearestNeighbourSensorModel(poses_d, map_feats_d[keep], cfg, bounds=model_i.bounds)
     fusion = FusionConfig(mode="disjunctive", w_i=setup.w_i, w_d=setup.w_d,
                           j_intensity=setup.j_intensity, j_disparity=setup.j_disparity)
+    obs = np.ones(len(truths), dtype=bool) if observed_d is None else np.asarray(observed_d, dtype=bool)
+    t_o = truths[obs]
     idx_i, _ = model_i.neighbours(feats_i, setup.j)
-    idx_d, _ = model_d.neighbours(feats_d, setup.j)
     pts_i = map_poses[idx_i]
+    e_i, ep_i = errors_eq10(truths, pts_i), errors_eq10_pose(truths, pts_i)
+    idx_d, _ = model_d.neighbours(feats_d[obs], setup.j) if obs.any() else (np.zeros((0, setup.j), int), None)
     pts_d = poses_d[idx_d]
-    pts_f, w_f = fused_points(model_i, model_d, feats_i, feats_d, fusion)
-    dist_f = np.sqrt(((pts_f[..., :2] - truths[:, None, :2]) ** 2).sum(-1))
-    e_f = errors_eq10(truths, pts_f)
-    e_i = errors_eq10(truths, pts_i)
+    pts_f, w_f = fused_points(model_i, model_d, feats_i[obs], feats_d[obs], fusion) if obs.any() else (
+        np.zeros((0, setup.j_intensity + setup.j_disparity, 3)), np.zeros((0, setup.j_intensity + setup.j_disparity)))
+
+    def eq10(t: np.ndarray, pts: np.ndarray, pose: bool = False) -> np.ndarray:
+        if not len(t):
+            return np.zeros(0)
+        return errors_eq10_pose(t, pts) if pose else errors_eq10(t, pts)
+
+    e_f, ep_f = e_i.copy(), ep_i.copy()  # a view the disparity channel did not observe: intensity alone
+    e_f[obs], ep_f[obs] = eq10(t_o, pts_f), eq10(t_o, pts_f, pose=True)
+    dist_f = np.sqrt(((pts_f[..., :2] - t_o[:, None, :2]) ** 2).sum(-1))
     # which channel gave the fused model's nearest point (ties: intensity)
-    e_fi = errors_eq10(truths, pts_f[:, : setup.j_intensity])
-    e_fd = errors_eq10(truths, pts_f[:, setup.j_intensity :])
+    e_fi = eq10(t_o, pts_f[:, : setup.j_intensity])
+    e_fd = eq10(t_o, pts_f[:, setup.j_intensity :])
+    views = int(obs.sum())
     return {
-        "intensity": _block(e_i, errors_eq10_pose(truths, pts_i), J=setup.j),
+        "intensity": _block(e_i, ep_i, J=setup.j),
         "fused": _block(
             e_f,
-            errors_eq10_pose(truths, pts_f),
+            ep_f,
             J=[setup.j_intensity, setup.j_disparity],
-            weighted_mean_distance_m=float(np.mean((w_f * dist_f).sum(1))),
-            nearest_from_disparity=float(np.mean(e_fd < e_fi)),
+            weighted_mean_distance_m=float(np.mean((w_f * dist_f).sum(1))) if views else None,
+            nearest_from_disparity=float(np.mean(e_fd < e_fi)) if views else None,
+            views_without_disparity=int((~obs).sum()),
         ),
-        "disparity": _block(errors_eq10(truths, pts_d), errors_eq10_pose(truths, pts_d), J=setup.j),
-        "intensity_j_split": _block(e_fi, None, J=setup.j_intensity),
-        "disparity_j_split": _block(e_fd, None, J=setup.j_disparity),
+        "disparity": _block(eq10(t_o, pts_d), eq10(t_o, pts_d, pose=True), J=setup.j, views=views),
+        "intensity_j_split": _block(e_fi, None, J=setup.j_intensity, views=views),
+        "disparity_j_split": _block(e_fd, None, J=setup.j_disparity, views=views),
     }
 
 
@@ -443,7 +463,7 @@ def run(setup: SensorModelSetup, progress: ProgressFn | None = None) -> dict[str
             res = evaluate_condition(truths, poses, np.asarray(yi, dtype=np.float64),
                                      np.asarray(ch.features, dtype=np.float64), np.asarray(yd, dtype=np.float64),
                                      np.asarray(dch.features, dtype=np.float64), setup,
-                                     map_rows_d=dch.observed_rows())
+                                     map_rows_d=dch.observed_rows(), observed_d=has)
             by_pre[pre][light] = res
         conditions[light] = by_pre[setup.preprocess][light]
 

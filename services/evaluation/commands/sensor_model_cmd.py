@@ -18,6 +18,13 @@ from services.progress import Progress
 log = logging.getLogger(__name__)
 
 
+def _cell(block: dict) -> str:
+    """``mean +- std`` of one block, right-aligned; "-" for a block without any view."""
+    if block["mean_m"] is None:
+        return f"{'-':>22}"
+    return f"{block['mean_m']:>13.3f} +- {block['std_m']:.3f}"
+
+
 def _table(result: dict) -> str:
     j = result["J"]
     lines = [
@@ -30,14 +37,13 @@ def _table(result: dict) -> str:
     ]
     lines.append("-" * len(lines[-1]))
     for light, r in result["conditions"].items():
-        cells = "".join(f"{r[k]['mean_m']:>13.3f} +- {r[k]['std_m']:.3f}" for k in ("intensity", "fused", "disparity"))
+        cells = "".join(_cell(r[k]) for k in ("intensity", "fused", "disparity"))
         lines.append(f"{light:<10}{cells}{result['disparity_density'][light]:>10.3f}")
     others = [p for p in result["by_preprocess"] if p != result["map"]["preprocess"]]
     for p in others:
         lines.append(f"\nintensity preprocessing {p}:")
         for light, r in result["by_preprocess"][p].items():
-            lines.append(f"{light:<10}" + "".join(
-                f"{r[k]['mean_m']:>13.3f} +- {r[k]['std_m']:.3f}" for k in ("intensity", "fused", "disparity")))
+            lines.append(f"{light:<10}" + "".join(_cell(r[k]) for k in ("intensity", "fused", "disparity")))
     return "\n".join(lines)
 
 
