@@ -15,7 +15,9 @@ object:
   adapter skipped to deliver the newest);
 - ``daemon``: resident memory now and peak (VmRSS / VmHWM, MB) and CPU share
   ((utime + stime) / wall time over the window; 1.0 = one full core); ``sim`` the same CPU
-  share for the simulator (it renders the camera, so it is not part of the daemon's cost).
+  share for the simulator (it renders the camera, so it is not part of the daemon's cost);
+- ``state_changes_per_min``: poses whose state differs from the previous pose's, per minute of
+  the window, and ``tracking_share``: the share of the window's poses in state ``tracking``.
 
 With ``--repeat R`` the run is repeated and the figures are medians (all runs are listed).
 
@@ -114,6 +116,7 @@ port = "auto"
 {sensor}
 [localizer.filter]
 n_particles = {args.particles}
+state_hold = {args.state_hold}
 [active_vision]
 enabled = {"true" if args.active_vision else "false"}
 [endpoints]
@@ -130,7 +133,7 @@ class _Collector(threading.Thread):
     def __init__(self, endpoint: str) -> None:
         super().__init__(daemon=True)
         self.endpoint = endpoint
-        self.poses: list[tuple[float, float, float]] = []  # (rx, stamp, latency_ms)
+        self.poses: list[tuple[float, float, float, str]] = []  # (rx, stamp, latency_ms, state)
         self.seqs: list[int] = []  # the update number of each pose received
         self.statuses: list[tuple[float, dict[str, Any]]] = []
         self.stop_event = threading.Event()
@@ -148,7 +151,7 @@ class _Collector(threading.Thread):
             rx = time.time()
             m = json.loads(payload)
             if topic == b"pose":
-                self.poses.append((rx, m["stamp"], m.get("latency_ms") or float("nan")))
+                self.poses.append((rx, m["stamp"], m.get("latency_ms") or float("nan"), str(m.get("state"))))
                 self.seqs.append(int(m["seq"]))
             elif topic == b"status":
                 self.statuses.append((rx, m))
@@ -200,9 +203,11 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
                 code = proc.wait()
             col.stop_event.set()
             col.join(5)
-    window = [(rx, st, lat) for rx, st, lat in col.poses if t0 <= rx <= t1]
+    window = [p for p in col.poses if t0 <= p[0] <= t1]
     lat = np.array([w[2] for w in window], dtype=float)
     rx_lat = np.array([(w[0] - w[1]) * 1000.0 for w in window], dtype=float)
+    states = [w[3] for w in window]
+    changes = sum(a != b for a, b in zip(states[:-1], states[1:], strict=True))
 
     def pct(a: np.ndarray) -> dict[str, float | None]:
         a = a[np.isfinite(a)]
@@ -222,6 +227,8 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         "frames": frames,
         "dropped_frames": dropped,
         "final_state": status1["state"] if status1 else None,
+        "state_changes_per_min": round(60.0 * changes / (t1 - t0), 2),
+        "tracking_share": round(states.count("tracking") / len(states), 3) if states else None,
         "daemon": {
             "rss_mb": round(rss, 1),
             "peak_rss_mb": round(hwm, 1),
@@ -266,6 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--index", default="auto", choices=("auto", "brute", "kdtree", "hnsw"),
                    help="[localizer.sensor] index (default %(default)s)")
     p.add_argument("--index-cache", default=None, help="[localizer.sensor] index_cache (the hnsw graph's folder)")
+    p.add_argument("--state-hold", type=int, default=1,
+                   help="[localizer.filter] state_hold (default %(default)s: the filter's default)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
     args = p.parse_args(argv)
     runs = [one_run(args) for _ in range(args.repeat)]
@@ -285,13 +294,15 @@ def main(argv: list[str] | None = None) -> int:
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
-                   "particles": args.particles, "active_vision": args.active_vision,
+                   "particles": args.particles, "active_vision": args.active_vision, "state_hold": args.state_hold,
                    "seconds": args.seconds, "repeat": args.repeat},
         "pose_rate_hz": med(["pose_rate_hz"]),
         "frame_rate_hz": med(["frame_rate_hz"]),
         "latency_ms": {"p50": med(["latency_ms", "p50"]), "p99": med(["latency_ms", "p99"])},
         "rx_latency_ms": {"p50": med(["rx_latency_ms", "p50"]), "p99": med(["rx_latency_ms", "p99"])},
         "dropped_frames": med(["dropped_frames"]),
+        "state_changes_per_min": med(["state_changes_per_min"]),
+        "tracking_share": med(["tracking_share"]),
         "frames": med(["frames"]),
         "daemon": {"rss_mb": med(["daemon", "rss_mb"]), "peak_rss_mb": med(["daemon", "peak_rss_mb"]),
                    "cpu_share": med(["daemon", "cpu_share"])},
