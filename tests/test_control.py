@@ -492,4 +492,7 @@ def test_many_clients_streaming_the_largest_frames_hold_little_memory() -> None:
         server.stop()
         ctx.term()
     assert answered > 50  # it kept serving them
-    assert peak - before < 30.0, f"grew by {peak - before:.1f} MB"
+    # the whole test process's RSS, which under pytest-xdist also holds what earlier tests in
+    # the same worker left running (31 MB was seen once there); the queue of the docstring
+    # that was not bounded grew by about 70 MB for 200 clients
+    assert peak - before < 40.0, f"grew by {peak - before:.1f} MB"
