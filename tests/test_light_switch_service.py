@@ -41,8 +41,10 @@ from test_daemon_integration import (  # noqa: E402
     stop,
 )
 
-#: How long the daemon may take to report the change (s): about twice the longest measured delay.
-FIND_WITHIN_S = 90.0
+#: How long the daemon may take to report the change (s): about three times the longest delay
+#: measured on the Intel Xeon VM (52.6 s; CI's session there once took over 90 s under the
+#: test suite's load; docs/results.md, "The light switch's delay on the Xeon").
+FIND_WITHIN_S = 150.0
 
 
 def _status(rep: str) -> dict:
@@ -51,7 +53,7 @@ def _status(rep: str) -> dict:
     return reply["status"]
 
 
-@pytest.mark.timeout(300)  # the start, up to FIND_WITHIN_S for the report, the last poses
+@pytest.mark.timeout(360)  # the start, up to FIND_WITHIN_S for the report, the last poses
 def test_daemon_reports_the_lights_switched_and_keeps_publishing(tmp_path: Path) -> None:
     from services.config import load_config
     from services.sim_launcher import ensure_sim_map
