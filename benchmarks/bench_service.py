@@ -16,8 +16,9 @@ object:
 - ``daemon``: resident memory now and peak (VmRSS / VmHWM, MB) and CPU share
   ((utime + stime) / wall time over the window; 1.0 = one full core); ``sim`` the same CPU
   share for the simulator (it renders the camera, so it is not part of the daemon's cost);
-- ``state_changes_per_min``: poses whose state differs from the previous pose's, per minute of
-  the window, and ``tracking_share``: the share of the window's poses in state ``tracking``.
+- ``state_changes_per_min``: poses whose state differs from the previous pose's, per minute
+  from the window's first to its last pose (``services.evaluation.honesty``, as ``eval
+  tracking`` counts them), and ``tracking_share``: the share of the window's poses in state ``tracking``.
 
 With ``--repeat R`` the run is repeated and the figures are medians (all runs are listed).
 
@@ -160,6 +161,9 @@ class _Collector(threading.Thread):
 
 
 def one_run(args: argparse.Namespace) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from services.evaluation.honesty import state_changes_per_min
+
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     with tempfile.TemporaryDirectory(prefix="bench-service-") as td:
@@ -207,7 +211,6 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
     lat = np.array([w[2] for w in window], dtype=float)
     rx_lat = np.array([(w[0] - w[1]) * 1000.0 for w in window], dtype=float)
     states = [w[3] for w in window]
-    changes = sum(a != b for a, b in zip(states[:-1], states[1:], strict=True))
 
     def pct(a: np.ndarray) -> dict[str, float | None]:
         a = a[np.isfinite(a)]
@@ -227,7 +230,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         "frames": frames,
         "dropped_frames": dropped,
         "final_state": status1["state"] if status1 else None,
-        "state_changes_per_min": round(60.0 * changes / (t1 - t0), 2),
+        "state_changes_per_min": round(state_changes_per_min([w[0] for w in window], states), 2),
         "tracking_share": round(states.count("tracking") / len(states), 3) if states else None,
         "daemon": {
             "rss_mb": round(rss, 1),
