@@ -118,6 +118,8 @@ port = "auto"
 [localizer.filter]
 n_particles = {args.particles}
 state_hold = {args.state_hold}
+[localizer.filter.challenge]
+after_misfit = {"true" if args.after_misfit == "on" else "false"}
 [active_vision]
 enabled = {"true" if args.active_vision else "false"}
 [endpoints]
@@ -278,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--index-cache", default=None, help="[localizer.sensor] index_cache (the hnsw graph's folder)")
     p.add_argument("--state-hold", type=int, default=1,
                    help="[localizer.filter] state_hold (default %(default)s: the filter's default)")
+    p.add_argument("--after-misfit", choices=("on", "off"), default="on",
+                   help="[localizer.filter.challenge] after_misfit (default %(default)s: the filter's default)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
     args = p.parse_args(argv)
     runs = [one_run(args) for _ in range(args.repeat)]
@@ -298,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
                    "particles": args.particles, "active_vision": args.active_vision, "state_hold": args.state_hold,
-                   "seconds": args.seconds, "repeat": args.repeat},
+                   "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat},
         "pose_rate_hz": med(["pose_rate_hz"]),
         "frame_rate_hz": med(["frame_rate_hz"]),
         "latency_ms": {"p50": med(["latency_ms", "p50"]), "p99": med(["latency_ms", "p99"])},

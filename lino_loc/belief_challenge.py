@@ -115,6 +115,18 @@ class ChallengeConfig(BaseModel):
         0.5, gt=0.0, le=1.0, description="share of a refuted belief's particles replaced by "
         "rivals drawn by their weights",
     )
+    after_misfit: bool = Field(
+        True, description="a tracked belief whose views stop fitting it (the view fit's "
+        "misfit, reported 'lost') is challenged again, as a new belief is: it is 'tracking' "
+        "again only once it has out-scored its rivals, who never join it (false: once its "
+        "views fit again); chosen with after_misfit_views on three worlds x five seeds "
+        "(docs/results.md, 'A belief its views refuted is challenged again')",
+    )
+    after_misfit_views: float = Field(
+        3.0, ge=0.0, description="with after_misfit: the misfit must have lasted this many "
+        "independent views in a row (0: the first misfit frame); lower reports 'tracking' "
+        "less often",
+    )
     adopt: bool = Field(
         False, description="rivals that reach -margin replace the belief (a search that "
         "settled on the wrong place starts again from the better one); off: measured, it made "
@@ -140,12 +152,16 @@ class BeliefChallenge:
     _seen: FloatArray | None = field(default=None, init=False)  # views each rival has lived
     _at: FloatArray | None = field(default=None, init=False)  # where the last challenge was
     _won: bool = field(default=False, init=False)  # ... and whether it passed
+    _refuting: bool = field(default=True, init=False)  # rivals may join a refuted belief
 
-    def start(self, pose: ArrayLike) -> None:
+    def start(self, pose: ArrayLike, refute: bool = True) -> None:
         """A belief converged at robot pose ``pose``: challenge it (when enabled). The same
         belief converged again (within :func:`lino_loc.lost_detection.near_pose` of where the
         last challenge stopped) resumes that challenge, its evidence and verdict kept: a
-        belief that spreads for a moment does not start afresh."""
+        belief that spreads for a moment does not start afresh. ``refute`` false: the
+        challenge only decides whether the belief is confirmed; rivals that keep beating it
+        never join it (a tracked belief challenged again after its views misfit)."""
+        self._refuting = refute
         p = np.asarray(pose, dtype=np.float64).reshape(3)
         same = self._at is not None and bool(near_pose(p[None, :], self._at)[0])
         self._at = p
@@ -225,7 +241,7 @@ class BeliefChallenge:
         their weights join the belief (``refute_share`` of ``n``) and the count restarts."""
         self._pinned = self._pinned + views if self.evidence <= -self.config.margin else 0.0
         limit = self.config.refute_views
-        if limit <= 0.0 or self._pinned < limit or self.rivals is None:
+        if limit <= 0.0 or not self._refuting or self._pinned < limit or self.rivals is None:
             return None
         self._pinned = 0.0
         self.refutations += 1

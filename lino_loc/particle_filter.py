@@ -357,6 +357,8 @@ class AuxiliaryParticleFilter:
         self._belief_converged = False  # the current belief has converged (since its start)
         self.injected = 0
         self._recall_run: float | None = None  # hit views in a row of an unconfirmed recalled pose
+        self._views = 0.0  # the last observation's independent views
+        self._misfit_views = 0.0  # independent views of the current run of misfit verdicts
         self.recovery.reset()
         self.challenge.reset()
         self.lost_detector.reset()
@@ -542,6 +544,7 @@ class AuxiliaryParticleFilter:
         self.lost_detector.update(excess, d, learn=learn, share=share)
         views = independent_views(d)
         self.view_fit.update(self._channel_excess(mixture, excess, pan), views, learn, self._channel_overlap(mixture))
+        self._views = views
         return views
 
     def _view_share(self, mixture: PoseMixture, pan: float) -> float:
@@ -797,12 +800,33 @@ class AuxiliaryParticleFilter:
             self._state = "tracking" if self._confirmed() else "global"
             if self._state == "tracking":
                 self._recall_run = None  # a recalled belief, confirmed: an ordinary one now
+                self._rechallenge_if_refuted(mean)
         else:
             self._belief_converged = False
             self._recall_run = None if self._recall_run is None else 0.0
             self.challenge.stop()
             self._state = "global"
         self._hold.offer(self._proposed_state())
+
+    def _rechallenge_if_refuted(self, mean: FloatArray) -> None:
+        """With ``challenge.after_misfit``: a tracked belief whose views have misfit
+        (``lino_loc.view_fit``; reported ``lost``) for ``challenge.after_misfit_views``
+        independent views in a row must out-score its rivals again before it is ``tracking``
+        (:meth:`_confirmed`); its rivals never join it. Without it, the same belief is
+        reported ``tracking`` as soon as its views fit again, also when the views fit another
+        place as well (a room symmetric in depth under a light that spoils the intensity
+        channel)."""
+        c = self.config
+        if not (c.challenge.after_misfit and c.challenge.enabled and c.view_fit.enabled):
+            return
+        if self.view_fit.verdict() != "misfit":
+            self._misfit_views = 0.0
+            return
+        self._misfit_views += self._views
+        if self._misfit_views >= c.challenge.after_misfit_views:
+            self._misfit_views = 0.0
+            self.challenge.reset()
+            self.challenge.start(mean, refute=False)
 
     def _confirmed(self) -> bool:
         """The views' confirmation of the converged belief (:attr:`LostDetector.confirmed`);

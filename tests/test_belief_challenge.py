@@ -283,3 +283,56 @@ def test_refreshing_rivals_some_of_which_drifted_near_the_belief() -> None:
     for _ in range(5):  # half of the rivals now lie "near the belief"
         step(lambda x: x[:, 0] < RIVAL_PLACE[0])
         assert ch.rivals is not None and np.isfinite(ch.rivals.weights.log).any()
+
+
+def _misfit_run(after_misfit: bool, twin: bool, seed: int = 0, views: float = 1.0) -> str:
+    """A robot driving east at 0.1 m per frame from (2, 2, 0), its belief gathered at the true
+    place, the view fit on. Frames 0-29: each view's mixture has one kernel, at the truth;
+    frames 30-39: at a place far from it (the views stop fitting: a misfit, reported
+    ``lost``); from frame 40 at the truth again and, with ``twin``, as strongly at a place that
+    moves as a robot 5 m away facing west would (a view that fits both). The states' first
+    letters, one per frame. ``views``: ``after_misfit_views`` (a frame is 0.29 of a view)."""
+    from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
+    from lino_loc.sensor_model import Bounds, PoseMixture
+
+    bounds = Bounds(0.0, 12.0, 0.0, 4.0)
+    motion = OdometryMotionModel(MotionModelConfig(alpha1=0.02, alpha2=0.02, alpha3=0.02, alpha4=0.005))
+    cfg = FilterConfig(n_particles=500, challenge=ChallengeConfig(after_misfit=after_misfit,
+                                                                 after_misfit_views=views))
+    pf = AuxiliaryParticleFilter(motion, bounds, cfg, rng=np.random.default_rng(seed))
+    rng = np.random.default_rng(seed + 1)
+    pf.set_particles(np.array([2.0, 2.0, 0.0]) + rng.normal(0.0, [0.1, 0.1, 0.05], (500, 3)))
+    states = ""
+    for k in range(90):
+        truth = np.array([2.1 + 0.1 * k, 2.0, 0.0])
+        if 30 <= k < 40:
+            kernels = np.array([[1.0, 0.5, math.pi / 2]])
+        elif twin and k >= 40:
+            kernels = np.vstack([truth, [11.0 - 0.1 * (k - 40), 3.0, math.pi]])
+        else:
+            kernels = truth[None, :]
+        mix = PoseMixture.create(kernels, np.zeros(len(kernels)), np.full(len(kernels), 0.3),
+                                 np.full(len(kernels), 0.3), outlier_weight=0.01, bounds=bounds)
+        pf.update(np.array([0.1, 0.0, 0.0]), 0.0, mix)
+        states += pf.state[0]
+    return states
+
+
+def test_a_refuted_belief_is_tracking_again_only_once_it_beats_its_rivals() -> None:
+    """After a misfit the views fit the belief again, and fit a twin as well. Without
+    ``after_misfit`` the belief is ``tracking`` again at once; with it, the twin holds it
+    unconfirmed (``global``) to the end. Where no twin fits, the re-challenged belief passes
+    and is ``tracking`` again."""
+    for after in (False, True):
+        for twin in (False, True):
+            s = _misfit_run(after, twin)
+            assert "t" in s[:30] and "l" in s[30:42], (after, twin, s)
+    assert _misfit_run(False, twin=True)[50:] == "t" * 40
+    rechallenged = _misfit_run(True, twin=True)
+    assert "t" not in rechallenged[38:] and rechallenged[-40:] == "g" * 40
+    passed = _misfit_run(True, twin=False)
+    assert "g" in passed[37:45] and passed[60:] == "t" * 30
+    # the first misfit frame suffices with after_misfit_views = 0; a misfit shorter than
+    # after_misfit_views (10 frames, 2.9 views) is not a refutation
+    assert _misfit_run(True, twin=True, views=0.0)[38:] == "g" * 52
+    assert _misfit_run(True, twin=True, views=5.0)[50:] == "t" * 40
