@@ -357,7 +357,6 @@ class AuxiliaryParticleFilter:
         self._belief_converged = False  # the current belief has converged (since its start)
         self.injected = 0
         self._recall_run: float | None = None  # hit views in a row of an unconfirmed recalled pose
-        self._views = 0.0  # the last observation's independent views
         self._misfit_views = 0.0  # independent views of the current run of misfit verdicts
         self.recovery.reset()
         self.challenge.reset()
@@ -475,7 +474,7 @@ class AuxiliaryParticleFilter:
         views = self._test_lost(ll, floor, viewed_increment(d, pan_change), mixture, pan)
         self._recover(ll, floor, d, loglik, mixture, pan, views)
         self._resample_if_degenerate()
-        self._update_state()
+        self._update_state(views)
         return ll
 
     def _predict_and_weight(
@@ -544,7 +543,6 @@ class AuxiliaryParticleFilter:
         self.lost_detector.update(excess, d, learn=learn, share=share)
         views = independent_views(d)
         self.view_fit.update(self._channel_excess(mixture, excess, pan), views, learn, self._channel_overlap(mixture))
-        self._views = views
         return views
 
     def _view_share(self, mixture: PoseMixture, pan: float) -> float:
@@ -776,8 +774,9 @@ class AuxiliaryParticleFilter:
             self._summary = dominant_mode(self._particles, self._weights.linear, trig=self._trig)
         return self._summary
 
-    def _update_state(self) -> None:
-        """Step 6: the state from the dominant mode, the lost test and the confirmation."""
+    def _update_state(self, views: float = 0.0) -> None:
+        """Step 6: the state from the dominant mode, the lost test and the confirmation;
+        ``views``: the observation's independent views (0 for the first, a uniform belief's)."""
         mean, cov, mass = self._dominant()
         converged = self.config.estimate.converged(cov, mass)
         if self.converged_once and self.lost_detector.lost:
@@ -800,7 +799,7 @@ class AuxiliaryParticleFilter:
             self._state = "tracking" if self._confirmed() else "global"
             if self._state == "tracking":
                 self._recall_run = None  # a recalled belief, confirmed: an ordinary one now
-                self._rechallenge_if_refuted(mean)
+                self._rechallenge_if_refuted(mean, views)
         else:
             self._belief_converged = False
             self._recall_run = None if self._recall_run is None else 0.0
@@ -808,7 +807,7 @@ class AuxiliaryParticleFilter:
             self._state = "global"
         self._hold.offer(self._proposed_state())
 
-    def _rechallenge_if_refuted(self, mean: FloatArray) -> None:
+    def _rechallenge_if_refuted(self, mean: FloatArray, views: float) -> None:
         """With ``challenge.after_misfit``: a tracked belief whose views have misfit
         (``lino_loc.view_fit``; reported ``lost``) for ``challenge.after_misfit_views``
         independent views in a row must out-score its rivals again before it is ``tracking``
@@ -822,7 +821,7 @@ class AuxiliaryParticleFilter:
         if self.view_fit.verdict() != "misfit":
             self._misfit_views = 0.0
             return
-        self._misfit_views += self._views
+        self._misfit_views += views
         if self._misfit_views >= c.challenge.after_misfit_views:
             self._misfit_views = 0.0
             self.challenge.reset()
