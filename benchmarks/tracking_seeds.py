@@ -13,7 +13,11 @@ same setup, maps and frames as the command; no without-recovery comparison) for 
   often the state changed (``state_changes_per_min``);
 - ``summary``: over all runs, the episodes caught within 5 s, the runs whose
   confident-wrong fraction exceeds 2 %, the uniform starts that converged, the mean
-  ``tracking`` share and state changes per minute by kind of run.
+  ``tracking`` share and state changes per minute by kind of run;
+- ``quality_by_world``: per world, the evaluation's quality table (error by band of the
+  published ``quality``, over the graded runs) pooled over the seeds: frames, and the
+  frame-weighted mean error, wrong share (error above 1 m) and ``tracking`` share per band
+  (medians do not pool, so none is given).
 
 A progress line per finished (world, seed) goes to stderr.
 
@@ -51,9 +55,9 @@ def _row(world: str, seed: int, name: str, res: dict[str, Any]) -> dict[str, Any
     }
 
 
-def one(args: tuple[str, int, tuple[str, ...]]) -> list[dict[str, Any]]:
+def one(args: tuple[str, int, tuple[str, ...]]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Every run of ``eval tracking`` on one world and seed, per configuration ("default": the
-    defaults), as rows. The frames are rendered once for all the configurations (the
+    defaults), as rows, and the quality table per configuration. The frames are rendered once for all the configurations (the
     evaluation's own ``render_frames``, remembered in this process)."""
     world, seed, configs = args
     import functools
@@ -72,12 +76,38 @@ def one(args: tuple[str, int, tuple[str, ...]]) -> list[dict[str, Any]]:
 
     tracking.render_frames = remembered
     rows = []
+    tables = {}
     for config in configs:
         cfg = None if config == "default" else load_config(config).localizer
         res = tracking.run(tracking.TrackingSetup(world=world, seed=seed, channels=tracking.DEFAULT_CHANNELS,
                                                   workers=1, compare_recovery=False), cfg)
         rows += [{**r, "config": config} for r in _rows(world, seed, res)]
-    return rows
+        tables[config] = res["quality_table"]
+    return rows, tables
+
+
+def pool_quality(tables: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Quality tables of several runs (:func:`services.evaluation.honesty.quality_table`, same
+    bands) as one: per band the frames summed and the mean error, wrong share and ``tracking``
+    share weighted by each table's frames; None for a band with no frames."""
+    if not tables:
+        return []
+    bands = [r["band"] for r in tables[0]]
+    if any([r["band"] for r in t] != bands for t in tables):
+        raise ValueError("quality tables with different bands do not pool")
+    out = []
+    for i, band in enumerate(bands):
+        rows = [t[i] for t in tables if t[i]["frames"]]
+        out.append({"band": band, "frames": sum(r["frames"] for r in rows),
+                    **{k: _weighted(rows, k) for k in ("mean_error_m", "wrong_fraction", "tracking_fraction")}})
+    return out
+
+
+def _weighted(rows: list[dict[str, Any]], key: str) -> float | None:
+    """The frame-weighted mean of ``key`` over the rows that have it; None if none has."""
+    vals = [(r[key], r["frames"]) for r in rows if r[key] is not None]
+    w = sum(f for _, f in vals)
+    return sum(v * f for v, f in vals) / w if w else None
 
 
 def _rows(world: str, seed: int, res: dict[str, Any]) -> list[dict[str, Any]]:
@@ -131,14 +161,20 @@ def main() -> None:
     configs = tuple(a.config or ["default"])
     jobs = [(w, int(s), configs) for w in a.worlds.split(",") for s in a.seeds.split(",")]
     rows: list[dict[str, Any]] = []
+    tables: dict[tuple[str, str], list[list[dict[str, Any]]]] = {}
     t0 = time.monotonic()
     with ProcessPoolExecutor(a.jobs) as ex:
-        for i, r in enumerate(ex.map(one, jobs), 1):
+        for i, (r, q) in enumerate(ex.map(one, jobs), 1):
             rows += r
             w, s, _ = jobs[i - 1]
+            for c, t in q.items():
+                tables.setdefault((c, w), []).append(t)
             print(f"[{time.monotonic() - t0:6.0f} s] {i}/{len(jobs)} done: {w} seed {s}",
                   file=sys.stderr, flush=True)
-    out = {c: {"summary": summary([r for r in rows if r["config"] == c])} for c in configs}
+    worlds = a.worlds.split(",")
+    out = {c: {"summary": summary([r for r in rows if r["config"] == c]),
+               "quality_by_world": {w: pool_quality(tables.get((c, w), [])) for w in worlds}}
+           for c in configs}
     print(json.dumps({"configs": out, "runs": rows}, indent=1))
 
 
