@@ -23,7 +23,9 @@ rules. A driving base makes new views itself.
 
 The switches are read by the loop and written by the control thread (``pause``,
 ``resume``, ``set_active_vision``), under a lock. Switching active vision off sends the head
-back to pan 0 (looking ahead) unless the head is paused.
+back to pan 0 (looking ahead) unless the head is paused. A head command is sent under the same
+lock after the switches are read again, so a decision that a switch overtook is dropped and
+never undoes the switch.
 
 Usage::
 
@@ -213,13 +215,14 @@ class ActiveHead:
             return None
         with self._lock:
             self.last_decision = d.reason
-            if d.command is not None:
-                self.commands += 1
-                self.last_command = float(d.command)
-        if d.command is None:
-            return None
+            # a switch that came while the policy decided voids the decision: checked and sent
+            # under the lock, so the switch's own goal (ahead, when switched off) is the last
+            if d.command is None or not (self.enabled and not self.paused and not self.head_paused):
+                return None
+            self.commands += 1
+            self.last_command = float(d.command)
+            self.head.command(float(d.command), 0.0)
         log.debug("active vision: pan -> %.2f rad", d.command)
-        self.head.command(float(d.command), 0.0)
         return float(d.command)
 
     def _confirmation_look(self, d: Decision, est: Estimate, pan: float) -> float | None:
@@ -257,11 +260,10 @@ class ActiveHead:
         ``run_in_loop``, e.g. ``CommandQueue.call``) or off (the head looks ahead again)."""
         with self._lock:
             self.enabled = bool(enabled)
-            head_paused = self.head_paused
+            if not enabled and not self.head_paused and self.head is not None:
+                self.head.command(0.0, 0.0)
         if enabled and self.policy is None:
             run_in_loop(self.ensure_policy)
-        if not enabled and not head_paused and self.head is not None:
-            self.head.command(0.0, 0.0)
 
     def info(self) -> ActiveVisionInfo:
         """The switches and counters, as the status and the control replies report them."""

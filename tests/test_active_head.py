@@ -61,6 +61,32 @@ def test_switches_gate_the_policy() -> None:
     assert a.step(estimate(), 2.0) is None and not a.info().enabled
 
 
+class SwitchedOffWhileDeciding(FakePolicy):
+    """A policy during whose decision the control thread switches the head off (``switch``)."""
+
+    def __init__(self, switch) -> None:  # noqa: ANN001
+        super().__init__(0.99)
+        self.switch = switch
+
+    def decide(self, particles, log_weights, **kw):  # noqa: ANN001, ANN003, ANN201
+        d = super().decide(particles, log_weights, **kw)
+        self.switch()
+        return d
+
+
+def test_a_decision_overtaken_by_a_switch_does_not_move_the_head() -> None:
+    # switched off (or paused) while the policy was deciding: the decision is void, and the
+    # head's last goal is the one the switch gave (ahead for off, none for a pause)
+    a, head = _active()
+    a.policy = SwitchedOffWhileDeciding(lambda: a.set_enabled(False, run_in_loop=lambda fn: fn()))  # type: ignore[assignment]
+    assert a.step(estimate(), 1.0) is None
+    assert head.commands == [(0.0, 0.0)] and a.info().head_commands == 0
+    for target in ("active_vision", "head"):
+        a, head = _active()
+        a.policy = SwitchedOffWhileDeciding(lambda t=target, a=a: a.set_paused(t, True))  # type: ignore[assignment]
+        assert a.step(estimate(), 1.0) is None and head.commands == []
+
+
 def test_failing_policy_is_skipped() -> None:
     a, head = _active()
     a.policy = FakePolicy(fail=True)  # type: ignore[assignment]
