@@ -72,7 +72,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=int, default=5)
     ap.add_argument("--window", type=float, default=60.0, help="seconds after the switch to wait for a report")
-    ap.add_argument("--poses", type=int, default=40, help="poses under the mapping light before the switch")
+    ap.add_argument("--poses", type=int, default=150, help="poses under the mapping light before the switch "
+                    "(150: 30 s at 5 fps, as tests/test_light_switch_service.py; 40: a switch 8 s after the start)")
     ap.add_argument("--fps", type=float, default=5.0)
     args = ap.parse_args()
     exit_on_sigterm()
