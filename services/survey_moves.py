@@ -20,7 +20,9 @@ the survey is to end now (what was captured is kept; a new run continues).
       {"cmd": "quit"}      -> end the survey now
       anything else        -> {"ok": false, "error": "<one line>"}, nothing changes
 
-  ``confirm``, ``skip`` and ``quit`` while no stop is waiting get ``{"ok": false, ...}``.
+  ``confirm``, ``skip`` and ``quit`` while no stop is waiting get ``{"ok": false, ...}``; a
+  stop is waiting from the moment it is offered until it is answered (not until the survey
+  has captured it), so a client polling ``status`` never answers one stop twice.
   The socket binds to a loopback endpoint unless told otherwise (it has no authentication).
 """
 
@@ -177,8 +179,10 @@ class ControlMover:
         cmd = req["cmd"]
         with self._cond:
             if cmd == "status":
-                out: dict[str, Any] = {"ok": True, "cmd": "status", "waiting": self._waiting is not None}
-                if self._waiting is not None:
+                # a stop already answered is not waiting, even before the survey has taken the answer
+                waiting = self._waiting is not None and self._answer is None
+                out: dict[str, Any] = {"ok": True, "cmd": "status", "waiting": waiting}
+                if waiting:
                     out.update(self._waiting)
                 if self.progress is not None:
                     out.update(self.progress())

@@ -53,6 +53,24 @@ def test_control_confirms_skips_and_quits_only_a_waiting_stop():
         ctx.term()
 
 
+def test_a_stop_answered_is_not_waiting_before_the_survey_takes_the_answer():
+    # between the answer and the survey's thread taking it, status must not offer the stop again
+    # (an operator polling status would confirm it twice and be refused)
+    ctx = zmq.Context()
+    mover = ControlMover("tcp://127.0.0.1:*", ctx)
+    try:
+        with mover._cond:  # what reach() does first; no thread takes the answer here
+            mover._waiting = {"stop": 2, "pose": [1.0, 2.0, 0.5], "label": "stop 3/4"}
+        assert _ask(ctx, mover.endpoint, b'{"cmd": "status"}')["waiting"] is True
+        assert _ask(ctx, mover.endpoint, b'{"cmd": "confirm"}')["ok"] is True
+        st = _ask(ctx, mover.endpoint, b'{"cmd": "status"}')
+        assert st["waiting"] is False and "stop" not in st
+        assert _ask(ctx, mover.endpoint, b'{"cmd": "confirm"}')["ok"] is False
+    finally:
+        mover.close()
+        ctx.term()
+
+
 def test_control_refuses_a_network_endpoint():
     with pytest.raises(LinoLocError, match="not a loopback endpoint"):
         check_local("tcp://0.0.0.0:5570")
