@@ -90,7 +90,12 @@ def test_messages_go_through_and_only_topic_prefixes_go_upstream(ctx: zmq.Contex
         assert not pub.wanted("particles") and not pub.wanted("status")
         # the daemon's side holds only the topic prefix; the relay saw and ignored the others
         assert pub.subscriptions == {b"pose"}
-        _until(lambda: pub.info().ignored_subscriptions >= 2, 5.0, "the relay's counters never came")
+        # the counters are the relay's report every REPORT_PERIOD_S: one taken after the junk's
+        # subscriptions were read but before the "pose" one (the junk's handshake may finish first)
+        # says 2 and 305 bytes, and the "pose" forwarded just after it can reach the daemon before
+        # the next report does; so wait for a report that has seen all three
+        _until(lambda: (i := pub.info()).ignored_subscriptions >= 2 and i.subscriptions >= 3, 5.0,
+               "the relay's counters never counted the three subscriptions")
         info = pub.info()
         assert info.subscribers == 2 and info.subscriptions == 3 and info.subscription_bytes == 4 + 300 + 5
         assert info.relay_running and info.relay_restarts == 0 and info.relay_resident_bytes > 10e6
