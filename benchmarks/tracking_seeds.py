@@ -57,8 +57,9 @@ def _row(world: str, seed: int, name: str, res: dict[str, Any]) -> dict[str, Any
 
 def one(args: tuple[str, int, tuple[str, ...]]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Every run of ``eval tracking`` on one world and seed, per configuration ("default": the
-    defaults), as rows, and the quality table per configuration. The frames are rendered once for all the configurations (the
-    evaluation's own ``render_frames``, remembered in this process)."""
+    defaults), as rows, and the quality table per configuration. The frames are rendered once
+    for all the configurations (the evaluation's own ``render_frames``, remembered in this
+    process)."""
     world, seed, configs = args
     import functools
 
