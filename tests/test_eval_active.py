@@ -206,6 +206,19 @@ def test_product_defaults_are_the_commands_defaults() -> None:
     assert d["pan_reliability"]["enabled"] is True  # lino_loc.pan_reliability, on for the product
 
 
+def test_the_kernel_width_option(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--sigma-xy`` sets the sensor model's kernel width; a width that is not positive is a
+    one-line error naming the option."""
+    from services.cli import build_parser
+    from services.evaluation.commands.active_cmd import _setup
+
+    args = build_parser().parse_args(["eval", "active", "--sigma-xy", "0.2"])
+    assert _setup(args, ()).sensor.sigma_xy == 0.2
+    assert main(["eval", "active", *TINY, "--sigma-xy", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--sigma-xy" in err and "Traceback" not in err
+
+
 def test_paper_setup_is_section_6_1() -> None:
     """--paper: intensity alone, no virtual headings, 5 features, no preprocessing, the
     nearest-neighbour sensor model with J = 10, 150 particles, 22 pans, survey 75 cm / 15 deg."""
@@ -250,3 +263,20 @@ def test_paper_runs_the_papers_map(capsys: pytest.CaptureFixture[str]) -> None:
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["setup"]["paper"] is True and res["map_entries"] == res["map_images"] == 1056
     assert all(len(r["success_ci95"]) == 2 for r in res["strategies"].values())
+
+
+def test_virtual_translations_fill_the_survey_cells(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--translations 3``: every survey image also gives the views of its cell's 25 cm lattice
+    (free positions), so the map holds more entries than images x virtual headings; success is
+    still judged on the survey's own grid. An even refinement, or the disparity channel, is a
+    one-line error."""
+    assert main(["eval", "active", "--json", *TINY, "--movements", "1", "--virtual-headings", "1",
+                 "--translations", "3", "--channels", "intensity"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["setup"]["translations"] == 3
+    assert res["map_images"] < res["map_entries"] <= 9 * res["map_images"]
+    for bad, text in ((["--translations", "2", "--channels", "intensity"], "odd"),
+                      (["--translations", "3"], "--channels intensity")):
+        assert main(["eval", "active", *TINY, *bad]) == 2
+        err = capsys.readouterr().err
+        assert text in err and "Traceback" not in err

@@ -15,7 +15,7 @@ CACHE_CODE: tuple[str, ...] = (
     "drivers.sim.renderer", "drivers.sim.lighting", "drivers.sim.textures", "drivers.sim.world",
     "drivers.sim.survey",
     "lino_loc.preprocessing", "lino_loc.disparity", "lino_loc.pca", "lino_loc.pca_missing",
-    "lino_loc.virtual_views", "lino_loc.appearance_map",
+    "lino_loc.virtual_views", "lino_loc.virtual_translations", "lino_loc.appearance_map",
 )
 
 

@@ -110,6 +110,7 @@ def render_map(
                           virtual_headings=setup.virtual_headings, virtual_step_deg=setup.virtual_step_deg,
                           disparity="disparity" in setup.channels,
                           disparity_features=setup.disparity_features,
+                          translations=setup.translations,
                           )[setup.preprocess]
     ch = amap.channels["intensity"]
     dch = amap.channels.get("disparity")
@@ -203,7 +204,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
     ev: ActionEvaluator = _ctx["evaluator"]
     pans = setup.active.actions()
     n_a = pans.size
-    step, hstep = setup.step, math.radians(setup.heading_step_deg)
+    step, hstep = setup.judged_step, math.radians(setup.heading_step_deg)
 
     def free(xy: np.ndarray) -> np.ndarray:
         return world.is_free(xy[:, 0], xy[:, 1])
@@ -425,7 +426,7 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
     t0 = time.perf_counter()
     world = load_world(setup.world)
     changes = world.check_changes(setup.scene_changes)
-    grid = grid_poses(world, setup.step, math.radians(setup.heading_step_deg))
+    grid = grid_poses(world, setup.judged_step, math.radians(setup.heading_step_deg))  # the criterion's
     pans = setup.active.actions()
     pca, map_features, entries, margin, disp = render_map(setup, progress)
     truths = place_test_positions(world, setup, grid)
@@ -465,7 +466,8 @@ def run(setup: ActiveSetup, progress: ProgressFn | None = None) -> tuple[dict[st
         "intervals": active_stats.bootstrap_report(),
         "movements": int(setup.movements),
         "setup": setup.report(),
-        "map_images": int(grid.shape[0]),
+        "map_images": int(grid.shape[0] if setup.criterion_step is None
+                          else grid_poses(world, setup.step, math.radians(setup.heading_step_deg)).shape[0]),
         "map_entries": int(entries.shape[0]),
         "test_poses": [[float(v) for v in t] for t in truths],
         "success_by_grid_distance": bands["none"],

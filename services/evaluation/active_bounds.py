@@ -40,9 +40,9 @@ def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarra
     cell = nearest_map_index(cams, grid, setup.step, math.radians(setup.heading_step_deg))
     idx, _ = model.neighbours(feats.reshape(cams.shape[0], -1))
     # the grid cells of the neighbours only (all the entries' against the grid: N x N distances)
-    idx_cell = nearest_map_index(entries[idx.ravel()], grid, setup.step,
+    idx_cell = nearest_map_index(entries[idx.ravel()], grid, setup.judged_step,
                                  math.radians(setup.heading_step_deg)).reshape(idx.shape)
-    near = (np.hypot(entries[idx, 0] - cams[:, None, 0], entries[idx, 1] - cams[:, None, 1]) <= setup.step * 1.05) & (
+    near = (np.hypot(entries[idx, 0] - cams[:, None, 0], entries[idx, 1] - cams[:, None, 1]) <= setup.judged_step * 1.05) & (
         np.abs(wrap_angle(entries[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
     return {
         "truth_cell_is_nearest_in_features": float(np.mean(idx_cell[:, 0] == cell)),
@@ -88,7 +88,7 @@ def ideal_hits(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_fe
             if k + 1 in hits:
                 best = dense[int(np.argmax(lp))]
                 hits[k + 1].append(bool(success(best, truths[pos], grid)[0]))
-                hits_pose[k + 1].append(bool(success_pose(best, truths[pos], grid, setup.step, hstep)[0]))
+                hits_pose[k + 1].append(bool(success_pose(best, truths[pos], grid, setup.judged_step, hstep)[0]))
     for k, v in hits.items():
         out[str(k)] = np.asarray(v)
         out[f"{k}_pose"] = np.asarray(hits_pose[k])

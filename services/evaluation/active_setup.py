@@ -78,6 +78,8 @@ class ActiveSetup:
     movements: int = 10
     scene_changes: tuple[str, ...] = ()
     min_grid_distance: float = 0.15
+    criterion_step: float | None = None  # the survey spacing success is judged on (None: ``step``)
+    translations: int = 1  # odd m > 1: the map also holds virtual translations every step / m
     sweep_stride: int = 7
     width: int = 320
     height: int = 240
@@ -93,6 +95,14 @@ class ActiveSetup:
     disparity_features: int | None = None  # the disparity channel's features (None: ``features``)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     paper: bool = False  # True: made by paper_setup (the result's setup says so)
+
+    @property
+    def judged_step(self) -> float:
+        """The position spacing (m) of the grid section 6.1's criterion is judged on and the test
+        positions are placed off: ``criterion_step``, or the map's ``step`` when None. A map
+        denser than the survey the criterion names (``step`` < ``criterion_step``) is judged on
+        the survey's cells."""
+        return self.step if self.criterion_step is None else self.criterion_step
 
     def sensor_model_for(self, entries: Any, features: Any, bounds: Any = None) -> Any:
         """The sensor model :attr:`sensor_model` names over one channel's map features
@@ -131,6 +141,10 @@ class ActiveSetup:
         }
         if self.disparity_features is not None:  # reported only when set
             out["disparity_features"] = self.disparity_features
+        if self.criterion_step is not None:  # reported only when set
+            out["criterion_step"] = self.criterion_step
+        if self.translations > 1:  # reported only when set
+            out["translations"] = self.translations
         if a.reliability.enabled:  # reported when on (lino_loc.pan_reliability)
             out["pan_reliability"] = a.reliability.model_dump()
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was
@@ -160,6 +174,7 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
 PAPER_METHOD: dict[str, Any] = {
     "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 1, "features": 5, "disparity_features": None,
     "preprocess": "none", "channels": ("intensity",), "sensor_model": "nearest_neighbour", "particles": 150,
+    "translations": 1,
 }
 
 

@@ -19,7 +19,7 @@ import hashlib
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -255,6 +255,7 @@ def build_sim_maps(
     stereo: StereoConfig | None = None,
     min_valid_fraction: float = 0.25,
     disparity_features: int | None = None,
+    translations: int = 1,
 ) -> dict[str, AppearanceMap]:
     """Appearance maps (eq. 1) of a simulated survey, one per preprocessing, built in memory.
 
@@ -268,7 +269,10 @@ def build_sim_maps(
     ``disparity``: every map also gets the disparity channel (section 5) of the same survey's
     stereo pairs, through the product's matcher (``stereo``, sparse: NaN where it found no
     match) and PCA with missing data (:func:`lino_loc.appearance_map.disparity_channel_from_vectors`)
-    with ``disparity_features`` features (default ``features``).
+    with ``disparity_features`` features (default ``features``). ``translations`` m > 1 (odd):
+    every survey view is also seen from the lattice of spacing ``step / m`` inside its cell by
+    virtual translations with its own sparse disparity
+    (:func:`lino_loc.virtual_translations.translate_survey`; intensity channels only).
     """
     import math
 
@@ -279,8 +283,11 @@ def build_sim_maps(
         virtual_setup,
     )
     from lino_loc.dataset import CameraInfo
+    from lino_loc.virtual_translations import translate_survey
     from lino_loc.virtual_views import augment_poses, offsets
 
+    if translations > 1 and disparity:
+        raise ValueError("build_sim_maps: virtual translations give intensity channels only, not the disparity channel")
     w = load_world(world)
     cam = CameraModel(width=width, height=height)
     stereo = stereo or StereoConfig()
@@ -294,7 +301,8 @@ def build_sim_maps(
         f"{w.name}-{lighting}-{step:g}m-{heading_step_deg:g}deg-{features}f-{{pre}}-{width}x{height}-"
         f"{size[0]}x{size[1]}-s{seed}"
         + (f"-v{virtual_headings}x{virtual_step_deg:g}" if virtual_headings > 1 else "")
-        + depth_key + f"-{w.fingerprint[:10]}-c{code_fingerprint()}.npz"
+        + depth_key + (f"-t{translations}" if translations > 1 else "")
+        + f"-{w.fingerprint[:10]}-c{code_fingerprint()}.npz"
     )
     out: dict[str, AppearanceMap] = {}
     missing = []
@@ -313,8 +321,28 @@ def build_sim_maps(
     spec = ViewSpec(world=world, lighting=lighting, width=width, height=height, size=size,
                     preprocess=tuple(missing), disparity=disparity, stereo=stereo,
                     min_valid_fraction=min_valid_fraction, seed=seed)
-    vectors = render_vectors(spec, poses, workers=workers, progress=progress)
     fx, fy, cx, cy = cam.intrinsics()
+    if translations > 1:
+        greys, disps = render_frames(replace(spec, disparity=True, preprocess=()), poses, workers=workers,
+                                     progress=progress)
+        xmin, xmax, ymin, ymax = w.mapped_area
+
+        def inside(xy: np.ndarray) -> np.ndarray:
+            return (w.is_free(xy[:, 0], xy[:, 1]) & (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax)
+                    & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax))
+
+        def vector_of(pre: str) -> Callable[[np.ndarray], np.ndarray]:
+            return lambda im: to_vector(preprocess(np.clip(np.rint(im), 0, 255).astype(np.uint8), pre), size)
+
+        vectors = {}
+        translated = poses
+        for pre in missing:
+            vectors[pre], translated, _ = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m,
+                                                           step, translations, keep=inside,
+                                                           transform=vector_of(pre))
+        poses = translated
+    else:
+        vectors = render_vectors(spec, poses, workers=workers, progress=progress)
     info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)
     virtual = None if virtual_headings <= 1 else virtual_setup(
         info, size, offsets(math.radians(virtual_step_deg), virtual_headings))

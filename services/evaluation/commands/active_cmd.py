@@ -94,6 +94,8 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
     "channels": lambda s: ",".join(s.channels),
     "sensor_model": lambda s: s.sensor_model,
     "j": lambda s: s.sensor.j,
+    "sigma_xy": lambda s: s.sensor.sigma_xy,
+    "translations": lambda s: s.translations,
     "residual_scale": lambda s: s.interpolation.residual_scale,
     "particles": lambda s: s.particles,
     "eval_particles": lambda s: s.active.max_particles,
@@ -108,16 +110,18 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
 #: The options `--paper` fixes (:data:`services.evaluation.active_setup.PAPER_METHOD`).
 _PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "disparity_features",
                                  "preprocess",
-                                 "channels", "sensor_model", "j", "particles", "actions", "pan_reliability")
+                                 "channels", "sensor_model", "j", "particles", "actions", "pan_reliability",
+                                 "translations")
 #: Method options mapped one to one onto an ActiveSetup field.
 _FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
                            "virtual_step": "virtual_step_deg", "features": "features",
                            "disparity_features": "disparity_features", "preprocess": "preprocess",
-                           "sensor_model": "sensor_model", "particles": "particles", "inject": "inject"}
+                           "sensor_model": "sensor_model", "particles": "particles", "inject": "inject",
+                           "translations": "translations"}
 
 
 #: The options of the pydantic configurations' fields (for their validation errors).
-_CONFIG_OPTIONS: dict[str, str] = {"n_actions": "--actions", "max_particles": "--eval-particles",
+_CONFIG_OPTIONS: dict[str, str] = {"n_actions": "--actions", "max_particles": "--eval-particles", "sigma_xy": "--sigma-xy",
                                    "predicted_neighbours": "--predicted", "j": "--j", "residual_scale": "--residual-scale"}
 
 
@@ -148,7 +152,7 @@ def with_options(base: ActiveSetup, given: dict[str, Any]) -> ActiveSetup:
     if "channels" in given:
         fields["channels"] = parse_channels(given["channels"])
     return replace(base, **fields, filter=filt, motion=motion, active=_copy(base.active, **active),
-                   sensor=_copy(base.sensor, **({"j": given["j"]} if "j" in given else {})),
+                   sensor=_copy(base.sensor, **{k: given[k] for k in ("j", "sigma_xy") if k in given}),
                    interpolation=_copy(base.interpolation, **({"residual_scale": given["residual_scale"]}
                                                               if "residual_scale" in given else {})))
 
@@ -168,7 +172,10 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
     ``--paper`` :func:`paper_setup`, then the method options given."""
     given = {k: getattr(args, k) for k in _METHOD if getattr(args, k) is not None}
     experiment = dict(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
-                      scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal)
+                      scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal,
+                      criterion_step=args.criterion_step)
+    if args.criterion_step is not None and not args.criterion_step > 0.0:
+        raise LinoLocError(f"--criterion-step must be positive (got {args.criterion_step})")
     for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
                         *((_option(k), given[k]) for k in ("particles", "actions", "eval_particles",
                                                            "virtual_headings", "disparity_features") if k in given)):
@@ -176,6 +183,8 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
             raise LinoLocError(f"{name} must be at least 1 (got {value})")
     if "residual_scale" in given and not given["residual_scale"] > 0.0:
         raise LinoLocError(f"--residual-scale must be positive (got {given['residual_scale']})")
+    if "translations" in given and (given["translations"] < 1 or given["translations"] % 2 == 0):
+        raise LinoLocError(f"--translations must be odd and positive (got {given['translations']})")
     if args.paper:
         _check_paper(given)
     try:
@@ -184,6 +193,8 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
         err = exc.errors()[0]
         field = str(err["loc"][0]) if err["loc"] else ""
         raise LinoLocError(f"{_CONFIG_OPTIONS.get(field, field)}: {err['msg']}") from None
+    if setup.translations > 1 and "disparity" in setup.channels:
+        raise LinoLocError("--translations synthesizes the intensity channel only: give --channels intensity")
     return setup
 
 
@@ -237,6 +248,10 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    "the map oracle (the map position whose stored views best match the views taken)")
     p.add_argument("--scene-changes", default="",
                    help="also run with these scene changes of the world (comma-separated, or 'all')")
+    p.add_argument("--criterion-step", type=float, default=None,
+                   help="judge success (section 6.1) on a survey grid of this spacing, metres, and place the "
+                   "test positions off it (default: --step); with a denser map (--step 0.375 --criterion-step "
+                   "0.75) it measures what views between the survey's poses would give")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--plot", metavar="DIR", default=None, help="write Fig. 3 and Fig. 4 PNGs here")
@@ -282,6 +297,13 @@ def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
     p.add_argument("--preprocess", choices=("none", "histeq", "gradient"),
                    help=f"image preprocessing before PCA (default {dv['preprocess']}; section 6.1 names none)")
     p.add_argument("--j", type=int, help=f"nearest neighbours of the sensor model (default {dv['j']})")
+    p.add_argument("--translations", type=int,
+                   help="odd m > 1: the map also holds every survey view seen from a lattice every --step / m "
+                   "inside its cell, synthesized from the view's sparse stereo disparity "
+                   f"(lino_loc.virtual_translations; intensity channel only; default {dv['translations']})")
+    p.add_argument("--sigma-xy", type=float,
+                   help=f"the sensor model's kernel width in x and y, metres (default {dv['sigma_xy']:g}; a map "
+                   "denser than the survey may want a narrower one)")
     p.add_argument("--sensor-model", choices=("nearest_neighbour", "interpolated"),
                    help="p(y | x): the J nearest map entries (nearest_neighbour, section 3) or the map's appearance "
                    f"interpolated between survey poses (lino_loc.interpolated_appearance); default {dv['sensor_model']}")

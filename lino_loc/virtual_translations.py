@@ -1,0 +1,166 @@
+"""Virtual translations: a survey view as seen from a nearby floor position.
+
+Virtual headings (:mod:`lino_loc.virtual_views`) synthesize turned views exactly; a view from
+another position needs the scene's depth. Here the depth is the one a robot's survey has, the
+sparse stereo disparity of the view (:func:`lino_loc.disparity.compute_disparity`): filled
+where the matcher gave no value by its nearest valid neighbour, then every pixel is moved as a
+3-D point of the pinhole model (forward warping with a z-buffer, the nearest surface wins):
+
+    X = (u - cx) Z / fx,  Y = (v - cy) Z / fy,  (X', Z') = (X - r, Z - f),
+    u' = fx X' / Z' + cx,  v' = fy Y / Z' + cy
+
+for a camera moved ``r`` metres to its right and ``f`` forward at the same height and heading
+(the robot moves on the floor; camera frame x right, y down, z forward). Target pixels no
+source pixel lands on (disocclusions, the border a forward or sideways move uncovers) are NaN.
+
+The paper's ref. [8] (Murase & Nayar) interpolates the appearance manifold between sampled
+poses; this is the geometric alternative the depth channel makes possible.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import distance_transform_edt
+
+from lino_loc.errors import LinoLocError
+
+FloatImage = NDArray[np.float32]
+
+
+def fill_nearest(sparse: ArrayLike) -> FloatImage:
+    """A sparse map (NaN = no value) with every NaN replaced by its nearest valid value
+    (Euclidean pixel distance, ties as ``scipy.ndimage.distance_transform_edt`` breaks them).
+    LinoLocError when no value is valid."""
+    a = np.asarray(sparse, dtype=np.float32)
+    missing = ~np.isfinite(a)
+    if missing.all():
+        raise LinoLocError("fill_nearest: the map has no valid value")
+    if not missing.any():
+        return a.copy()
+    idx = distance_transform_edt(missing, return_distances=False, return_indices=True)
+    return a[tuple(idx)]
+
+
+def dense_depth(disparity: ArrayLike, shape: tuple[int, int], fx: float, baseline_m: float,
+                max_depth_m: float = 20.0) -> FloatImage:
+    """Depth (metres) at every pixel of an image of ``shape = (height, width)`` from a sparse
+    disparity map of any size whose values are pixels of that image (``compute_disparity``,
+    ``downsample_sparse`` keep them so): holes filled by :func:`fill_nearest`, resized
+    bilinearly, ``Z = fx B / d``, clipped to ``max_depth_m`` (zero or negative disparity)."""
+    if not (fx > 0 and baseline_m > 0):
+        raise LinoLocError(f"dense_depth: fx ({fx}) and baseline_m ({baseline_m}) must be positive")
+    d = fill_nearest(disparity)
+    h, w = int(shape[0]), int(shape[1])
+    if d.shape != (h, w):
+        d = cv2.resize(d, (w, h), interpolation=cv2.INTER_LINEAR)
+    z = np.full(d.shape, max_depth_m, dtype=np.float32)
+    ok = d > fx * baseline_m / max_depth_m
+    z[ok] = (fx * baseline_m / d[ok]).astype(np.float32)
+    return z
+
+
+def warp(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, float, float, float],
+         right_m: float, forward_m: float, min_depth_m: float = 0.05) -> FloatImage:
+    """The view of a camera moved ``right_m`` to its right and ``forward_m`` forward (see the
+    module docstring): ``image`` (H, W) and its ``depth`` (H, W) metres, ``intrinsics`` (fx, fy,
+    cx, cy) pixels. Float32 (H, W), NaN where nothing lands. Points that end less than
+    ``min_depth_m`` in front of the moved camera are dropped."""
+    img = np.asarray(image, dtype=np.float32)
+    z = np.asarray(depth, dtype=np.float64)
+    if img.shape != z.shape or img.ndim != 2:
+        raise LinoLocError(f"warp: image {img.shape} and depth {z.shape} must be the same 2-D shape")
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    h, w = img.shape
+    v, u = np.mgrid[0:h, 0:w]
+    x = (u - cx) * z / fx - right_m
+    y = (v - cy) * z / fy
+    z2 = z - forward_m
+    keep = np.isfinite(z2) & (z2 > min_depth_m)
+    u2 = np.rint(fx * x[keep] / z2[keep] + cx).astype(np.int64)
+    v2 = np.rint(fy * y[keep] / z2[keep] + cy).astype(np.int64)
+    inside = (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
+    target = (v2 * w + u2)[inside]
+    depth2 = z2[keep][inside]
+    value = img[keep][inside]
+    order = np.lexsort((depth2, target))  # by target pixel, nearest first
+    first = np.unique(target[order], return_index=True)[1]
+    out = np.full(h * w, np.nan, dtype=np.float32)
+    out[target[order][first]] = value[order][first]
+    return out.reshape(h, w)
+
+
+def camera_move(dx: float, dy: float, heading: float) -> tuple[float, float]:
+    """A floor displacement (dx, dy) in the world frame (REP-103: x forward of the map, y left)
+    as (right, forward) of a camera whose optical axis points at ``heading`` (rad)."""
+    c, s = math.cos(heading), math.sin(heading)
+    forward = dx * c + dy * s
+    left = -dx * s + dy * c
+    return -left, forward
+
+
+def lattice_offsets(step: float, refinement: int) -> NDArray[np.float64]:
+    """Floor offsets (K, 2), K = refinement^2, of the lattice of spacing ``step / refinement``
+    inside one survey cell: ``(i, j) step / refinement`` for i, j in -(m-1)/2 .. (m-1)/2. The
+    refinement m is odd, so every offset lies inside the cell and none on its border (which
+    section 6.1's criterion would count right for either neighbour); (0, 0) comes first."""
+    m = int(refinement)
+    if m < 1 or m % 2 == 0:
+        raise LinoLocError(f"virtual translations: the refinement must be odd and positive (got {refinement})")
+    k = np.arange(m) - (m - 1) // 2
+    gi, gj = np.meshgrid(k, k, indexing="ij")
+    off = np.column_stack([gi.ravel(), gj.ravel()]).astype(np.float64) * (step / m)
+    return off[np.argsort(np.hypot(off[:, 0], off[:, 1]), kind="stable")]
+
+
+def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
+                     intrinsics: tuple[float, float, float, float], baseline_m: float, step: float,
+                     refinement: int, keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None,
+                     transform: Callable[[FloatImage], np.ndarray] | None = None,
+                     ) -> tuple[np.ndarray, NDArray[np.float64], int]:
+    """Every survey view (``greys`` (N, H, W), its sparse disparity (N, h, w) in pixels of the
+    grey image, its robot pose (N, 3)) seen from each :func:`lattice_offsets` of its cell, same
+    heading: the real view at offset (0, 0), virtual translations elsewhere, their holes filled
+    by :func:`fill_nearest`. ``keep(xy)`` (M, 2) -> bool (M,) drops positions (e.g. not free);
+    the offsets kept depend on the position alone, so every lattice position holds the same
+    headings as its survey position (the map stays a product grid of positions x headings,
+    which the action evaluation's fast path needs). Where a view cannot be warped (its
+    disparity has no value, or nothing lands in the moved camera) the survey view itself
+    stands for it, as in a map without translations.
+
+    Returns the images (M, H, W) float32 (with ``transform``: ``transform(image)`` of each,
+    stacked, e.g. the map's working vector, so the full-size views are never all held), their
+    poses (M, 3) and how many views fell back to the survey view."""
+    g = np.asarray(greys)
+    d = np.asarray(disparities, dtype=np.float32)
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if not (g.shape[0] == d.shape[0] == p.shape[0]):
+        raise LinoLocError(f"translate_survey: {g.shape[0]} images, {d.shape[0]} disparity maps, {p.shape[0]} poses")
+    offsets = lattice_offsets(step, refinement)
+    images: list[np.ndarray] = []
+    out_poses: list[np.ndarray] = []
+    fallbacks = 0
+    keep_as = transform or (lambda im: im)
+    for img, disp, pose in zip(g, d, p, strict=True):
+        targets = np.column_stack([pose[0] + offsets[:, 0], pose[1] + offsets[:, 1], np.full(len(offsets), pose[2])])
+        ok = np.ones(len(targets), dtype=bool) if keep is None else np.asarray(keep(targets[:, :2]), dtype=bool)
+        source = keep_as(np.asarray(img, dtype=np.float32))
+        images.append(source)
+        out_poses.append(targets[0])
+        depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m) if np.isfinite(disp).any() else None
+        for t in targets[1:][ok[1:]]:
+            view = None
+            if depth is not None:
+                right, forward = camera_move(t[0] - pose[0], t[1] - pose[1], float(pose[2]))
+                view = warp(img, depth, intrinsics, right, forward)
+            if view is None or not np.isfinite(view).any():
+                fallbacks += 1
+                images.append(source)
+            else:
+                images.append(keep_as(fill_nearest(view)))
+            out_poses.append(t)
+    return np.asarray(images), np.asarray(out_poses), fallbacks

@@ -1,0 +1,137 @@
+"""Virtual translations (lino_loc/virtual_translations.py): the pinhole warp against closed
+forms on planes, the z-buffer, the lattice, and a real rendered view."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lino_loc.errors import LinoLocError
+from lino_loc.virtual_translations import (
+    camera_move,
+    dense_depth,
+    fill_nearest,
+    lattice_offsets,
+    translate_survey,
+    warp,
+)
+
+INTR = (100.0, 100.0, 31.5, 23.5)  # fx, fy, cx, cy of a 64 x 48 image
+
+
+def test_fill_nearest_takes_the_nearest_valid_value() -> None:
+    a = np.array([[1.0, np.nan, np.nan, 4.0]], dtype=np.float32)
+    assert fill_nearest(a).tolist() == [[1.0, 1.0, 4.0, 4.0]]
+    with pytest.raises(LinoLocError, match="no valid value"):
+        fill_nearest(np.full((2, 2), np.nan))
+
+
+def test_dense_depth_of_a_constant_disparity_is_f_b_over_d() -> None:
+    disp = np.full((6, 8), 5.0, dtype=np.float32)
+    disp[2, 3] = np.nan
+    z = dense_depth(disp, (48, 64), fx=100.0, baseline_m=0.075)
+    assert z.shape == (48, 64) and np.allclose(z, 100.0 * 0.075 / 5.0)
+    # no disparity (infinitely far) is clipped to the largest depth
+    assert np.allclose(dense_depth(np.zeros((6, 8)), (6, 8), 100.0, 0.075, max_depth_m=9.0), 9.0)
+
+
+def test_a_sideways_move_before_a_plane_shifts_the_image_by_f_r_over_z() -> None:
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 255, (48, 64)).astype(np.float32)
+    depth = np.full(img.shape, 2.0)
+    out = warp(img, depth, INTR, right_m=0.04, forward_m=0.0)  # 100 * 0.04 / 2 = 2 px to the left
+    assert np.array_equal(out[:, :-2], img[:, 2:])
+    assert np.isnan(out[:, -2:]).all()
+
+
+def test_a_forward_move_magnifies_about_the_principal_point() -> None:
+    """Z = 2 m, 1 m forward: u' - cx = 2 (u - cx); the pixel 5 columns right of centre lands 10 right."""
+    img = np.zeros((48, 64), dtype=np.float32)
+    img[23, 36] = 200.0  # u - cx = 4.5, v - cy = -0.5
+    out = warp(img, np.full(img.shape, 2.0), INTR, right_m=0.0, forward_m=1.0)
+    vals = np.nan_to_num(out, nan=-1.0)
+    v, u = np.unravel_index(np.argmax(vals), vals.shape)
+    assert (u, v) == (round(31.5 + 9.0), round(23.5 - 1.0))
+    # the magnified image leaves holes between the landed pixels
+    assert np.isnan(out).mean() > 0.5
+
+
+def test_the_nearest_surface_wins() -> None:
+    """A near occluder (1 m) and the wall behind it (4 m): after a move, where both land the
+    occluder's value is kept."""
+    img = np.full((48, 64), 50.0, dtype=np.float32)
+    depth = np.full(img.shape, 4.0)
+    img[:, 28:36] = 250.0
+    depth[:, 28:36] = 1.0
+    out = warp(img, depth, INTR, right_m=0.1, forward_m=0.0)  # occluder moves 10 px left, wall 2.5 px
+    assert np.all(out[:, 18:26] == 250.0)
+    assert np.nanmax(out[:, 40:]) == 50.0
+
+
+def test_camera_move_in_the_camera_frame() -> None:
+    assert camera_move(1.0, 0.0, 0.0) == pytest.approx((0.0, 1.0))  # facing +x: forward
+    assert camera_move(1.0, 0.0, math.pi / 2) == pytest.approx((1.0, 0.0))  # facing +y: +x is to the right
+    assert camera_move(0.0, 1.0, 0.0) == pytest.approx((-1.0, 0.0))  # +y is to the left
+
+
+def test_lattice_offsets_stay_inside_the_cell() -> None:
+    off = lattice_offsets(0.75, 3)
+    assert off.shape == (9, 2) and np.array_equal(off[0], [0.0, 0.0])
+    assert np.max(np.abs(off)) == pytest.approx(0.25) and np.max(np.abs(off)) < 0.375
+    assert lattice_offsets(0.75, 1).tolist() == [[0.0, 0.0]]
+    with pytest.raises(LinoLocError, match="odd"):
+        lattice_offsets(0.75, 2)
+
+
+def test_translate_survey_keeps_the_real_view_and_drops_what_keep_refuses() -> None:
+    rng = np.random.default_rng(1)
+    greys = rng.integers(0, 255, (2, 48, 64), dtype=np.uint8)
+    disps = np.full((2, 12, 16), 100.0 * 0.075 / 3.0, dtype=np.float32)  # a wall 3 m away
+    disps[1] = np.nan  # no stereo: only the real view
+    poses = np.array([[1.0, 1.0, 0.0], [3.0, 1.0, 0.5]])
+    images, out, fallbacks = translate_survey(greys, disps, poses, INTR, 0.075, 0.75, 3,
+                                              keep=lambda xy: xy[:, 1] >= 1.0)
+    # each pose: itself + the 5 offsets with y >= 1 (of 8 others: dy = 0 (2), dy = +0.25 (3))
+    assert out.shape == (12, 3) and images.shape == (12, 48, 64)
+    assert np.array_equal(images[0], greys[0].astype(np.float32)) and np.array_equal(out[0], poses[0])
+    assert np.array_equal(out[6], poses[1]) and np.all(out[:, 1] >= 1.0) and np.all(out[:6, 2] == 0.0)
+    assert np.all(out[6:, 2] == 0.5)  # every lattice position holds its survey position's headings
+    assert np.isfinite(images).all()
+    # pose 1 has no stereo: its five translations fall back to its own view
+    assert fallbacks == 5 and all(np.array_equal(images[k], greys[1].astype(np.float32)) for k in range(6, 12))
+    assert not np.array_equal(images[1], images[0])  # pose 0's are warped
+    # with a transform only its outputs are kept (the map's working vectors)
+    vecs, out2, _ = translate_survey(greys, disps, poses, INTR, 0.075, 0.75, 3, keep=lambda xy: xy[:, 1] >= 1.0,
+                                     transform=lambda im: im[::8, ::8].ravel())
+    assert vecs.shape == (12, 48) and np.array_equal(vecs, images[:, ::8, ::8].reshape(12, -1))
+    assert np.array_equal(out2, out)
+
+
+def test_a_rendered_view_translated_is_nearer_the_real_view_than_the_survey_view() -> None:
+    """The simulated office: a survey view warped 25 cm with its own sparse stereo disparity is
+    nearer (at the map's working size) to the real view rendered there than the survey view is."""
+    from drivers.sim.renderer import CameraModel, Renderer
+    from drivers.sim.world import load_world
+    from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
+    from lino_loc.preprocessing import preprocess, to_vector
+
+    world = load_world("office")
+    camera = CameraModel(width=160, height=120)
+    renderer = Renderer(world, camera=camera)
+    intr = camera.intrinsics()
+    size = (40, 30)
+    for k, (x, y, th, dx, dy) in enumerate([(2.0, 1.5, 0.3, 0.25, 0.0), (5.0, 1.0, 2.0, 0.0, 0.25)]):
+        src = renderer.render(x, y, th, stereo=True, rng=np.random.default_rng((k, 0)))
+        disp = downsample_sparse(compute_disparity(src.left, src.right, StereoConfig()), size)
+        depth = dense_depth(disp, src.grey.shape, intr[0], camera.baseline_m)
+        virtual = fill_nearest(warp(src.grey, depth, intr, *camera_move(dx, dy, th)))
+        real = renderer.render(x + dx, y + dy, th, stereo=False, rng=np.random.default_rng((k, 1))).grey
+
+        def vec(im: np.ndarray) -> np.ndarray:
+            return to_vector(preprocess(np.clip(np.rint(im), 0, 255).astype(np.uint8), "none"), size)
+
+        d_virtual = np.linalg.norm(vec(real) - vec(virtual))
+        d_survey = np.linalg.norm(vec(real) - vec(src.grey))
+        assert d_virtual < 0.6 * d_survey, (k, d_virtual, d_survey)
