@@ -13,7 +13,7 @@ placement, seed ``--seed``):
    survey's positions). Its success bounds any sensor model that synthesizes views between
    survey poses on such a lattice, with the truth's neighbourhood and heading given.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/criterion_precision.py --worlds office,lab,corridor,reading_room \
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_criterion_precision.py --worlds office,lab,corridor,reading_room \
         --positions 40 --json out.json
 """
 
