@@ -35,7 +35,7 @@ from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.world import grid_poses, load_world
 from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
 from lino_loc.preprocessing import preprocess, to_vector
-from lino_loc.virtual_translations import camera_move, dense_depth, fill_nearest, warp
+from lino_loc.virtual_translations import dense_depth, translate_view
 from lino_loc.virtual_views import crop_columns
 from services.evaluation import active
 from services.evaluation.active_setup import product_defaults
@@ -76,9 +76,10 @@ def world_report(name: str, args: argparse.Namespace) -> dict[str, Any]:
             disp = downsample_sparse(compute_disparity(src.left, src.right, StereoConfig()), setup.size)
             if not np.isfinite(disp).any():
                 continue
-            depth = dense_depth(disp, src.grey.shape, intr[0], camera.baseline_m)
-            right, forward = camera_move(t[0] - s[0], t[1] - s[1], float(s[2]))
-            virtual = fill_nearest(warp(src.grey, depth, intr, right, forward))
+            virtual = translate_view(src.grey, dense_depth(disp, src.grey.shape, intr[0], camera.baseline_m),
+                                     intr, s, t)
+            if virtual is None:
+                continue
             real = [renderer.render(*map(float, p), stereo=False, rng=np.random.default_rng((args.seed, k, j)))
                     for j, p in ((1, t), (2, t), (3, t2))]
             f_t, f_t_again, f_t2 = (_features(r.grey, setup, pca, margin) for r in real)

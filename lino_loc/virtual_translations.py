@@ -103,6 +103,18 @@ def camera_move(dx: float, dy: float, heading: float) -> tuple[float, float]:
     return -left, forward
 
 
+def translate_view(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, float, float, float],
+                   pose: ArrayLike, target: ArrayLike) -> FloatImage | None:
+    """The view of a robot at ``pose`` (x, y, theta) with its ``depth`` (metres, every pixel),
+    as seen from the floor position ``target`` (x, y, ...) at the same heading: :func:`warp` by
+    :func:`camera_move`, holes filled by :func:`fill_nearest`; None when nothing lands."""
+    p = np.asarray(pose, dtype=np.float64)
+    t = np.asarray(target, dtype=np.float64)
+    right, forward = camera_move(float(t[0] - p[0]), float(t[1] - p[1]), float(p[2]))
+    view = warp(image, depth, intrinsics, right, forward)
+    return fill_nearest(view) if np.isfinite(view).any() else None
+
+
 def lattice_offsets(step: float, refinement: int) -> NDArray[np.float64]:
     """Floor offsets (K, 2), K = refinement^2, of the lattice of spacing ``step / refinement``
     inside one survey cell: ``(i, j) step / refinement`` for i, j in -(m-1)/2 .. (m-1)/2. The
@@ -153,14 +165,11 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
         out_poses.append(targets[0])
         depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m) if np.isfinite(disp).any() else None
         for t in targets[1:][ok[1:]]:
-            view = None
-            if depth is not None:
-                right, forward = camera_move(t[0] - pose[0], t[1] - pose[1], float(pose[2]))
-                view = warp(img, depth, intrinsics, right, forward)
-            if view is None or not np.isfinite(view).any():
+            view = None if depth is None else translate_view(img, depth, intrinsics, pose, t)
+            if view is None:
                 fallbacks += 1
                 images.append(source)
             else:
-                images.append(keep_as(fill_nearest(view)))
+                images.append(keep_as(view))
             out_poses.append(t)
     return np.asarray(images), np.asarray(out_poses), fallbacks

@@ -12,6 +12,7 @@ from scipy.integrate import quad
 from scipy.stats import norm
 
 from drivers.sim.world import grid_poses, load_world
+from lino_loc.metrics import map_positions
 from services.cli import main
 from services.evaluation.active_setup import ActiveSetup, paper_active_vision
 from services.evaluation.criterion_precision import (
@@ -103,7 +104,7 @@ def test_the_oracle_names_the_lattice_point_the_views_were_taken_at(office: tupl
     the oracle names that very point, so its error is 0 and it succeeds; the survey's own
     lattice (m = 1) can only name a survey position."""
     setup, world, grid = office
-    origin = np.min(np.unique(np.round(grid[:, :2], 6), axis=0), axis=0)
+    origin = np.min(map_positions(grid), axis=0)
     spacing = setup.step / 3
     truths = np.array([[origin[0] + 7 * spacing, origin[1] + 5 * spacing, 0.4],
                        [origin[0] + 10 * spacing, origin[1] + 4 * spacing, -2.0]])
@@ -115,7 +116,7 @@ def test_the_oracle_names_the_lattice_point_the_views_were_taken_at(office: tupl
         assert fine["success"].tolist() == [True, True]
         assert np.allclose(fine["error"], 0.0)
         coarse = out[dist]["1"]["2"]["error"]
-        survey_xy = np.unique(np.round(grid[:, :2], 6), axis=0)
+        survey_xy = map_positions(grid)
         for p, e in enumerate(coarse):  # the decision is a survey position at that distance
             d = np.hypot(survey_xy[:, 0] - truths[p, 0], survey_xy[:, 1] - truths[p, 1])
             assert np.min(np.abs(d - e)) < 1e-6

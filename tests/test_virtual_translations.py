@@ -15,6 +15,7 @@ from lino_loc.virtual_translations import (
     fill_nearest,
     lattice_offsets,
     translate_survey,
+    translate_view,
     warp,
 )
 
@@ -126,7 +127,8 @@ def test_a_rendered_view_translated_is_nearer_the_real_view_than_the_survey_view
         src = renderer.render(x, y, th, stereo=True, rng=np.random.default_rng((k, 0)))
         disp = downsample_sparse(compute_disparity(src.left, src.right, StereoConfig()), size)
         depth = dense_depth(disp, src.grey.shape, intr[0], camera.baseline_m)
-        virtual = fill_nearest(warp(src.grey, depth, intr, *camera_move(dx, dy, th)))
+        virtual = translate_view(src.grey, depth, intr, (x, y, th), (x + dx, y + dy))
+        assert virtual is not None
         real = renderer.render(x + dx, y + dy, th, stereo=False, rng=np.random.default_rng((k, 1))).grey
 
         def vec(im: np.ndarray) -> np.ndarray:

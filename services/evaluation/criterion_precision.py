@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from drivers.sim.world import World
-from lino_loc.metrics import success
+from lino_loc.metrics import map_positions, success
 from lino_loc.virtual_views import crop_columns
 from services.evaluation.active_bounds import sweep_order
 from services.evaluation.active_setup import ActiveSetup
@@ -111,7 +111,7 @@ def appearance_oracle(setup: ActiveSetup, world: World, grid: np.ndarray, pca: A
     if refs[0] < 1 or any(finest % m for m in refs):
         raise ValueError(f"appearance_oracle: refinements {refinements} must be positive divisors of the largest")
     pans = setup.active.actions()
-    origin = np.min(np.unique(np.round(grid[:, :2], 6), axis=0), axis=0)
+    origin = np.min(map_positions(grid), axis=0)
     spacing = setup.step / finest
     spec = ViewSpec(world=setup.world, lighting=setup.lighting, width=setup.width, height=setup.height,
                     size=setup.size, preprocess=(setup.preprocess,), seed=setup.seed + 1000)
