@@ -137,3 +137,15 @@ def test_a_rendered_view_translated_is_nearer_the_real_view_than_the_survey_view
         d_virtual = np.linalg.norm(vec(real) - vec(virtual))
         d_survey = np.linalg.norm(vec(real) - vec(src.grey))
         assert d_virtual < 0.6 * d_survey, (k, d_virtual, d_survey)
+
+
+def test_a_translated_map_is_the_same_whatever_other_preprocessings_are_built_with_it() -> None:
+    """``build_sim_maps`` warps each view once for all its preprocessings: the histeq map built
+    beside the plain one equals the histeq map built alone."""
+    from services.evaluation.views import build_sim_maps
+
+    kw = dict(workers=1, width=160, height=120, size=(40, 30), cache=False, translations=3)
+    both = build_sim_maps("office", 2.0, 45, 5, ("none", "histeq"), **kw)["histeq"]
+    alone = build_sim_maps("office", 2.0, 45, 5, ("histeq",), **kw)["histeq"]
+    assert both.poses.shape[0] > 0 and np.array_equal(both.poses, alone.poses)
+    assert np.allclose(both.channels["intensity"].features, alone.channels["intensity"].features)

@@ -28,6 +28,7 @@ Voronoi cell of the survey grid. Two references for the active-localization figu
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -120,8 +121,7 @@ def appearance_oracle(setup: ActiveSetup, world: World, grid: np.ndarray, pca: A
     cams[:, :, 2] = cams[:, :, 2] + pans[order]
     test = crop_columns(render_vectors(spec, cams.reshape(-1, 3), workers=setup.workers)[setup.preprocess],
                         setup.size, margin).reshape(truths.shape[0], views, -1)
-    lat_spec = ViewSpec(world=setup.world, lighting=setup.lighting, width=setup.width, height=setup.height,
-                        size=setup.size, preprocess=(setup.preprocess,), seed=setup.seed + 7000)
+    lat_spec = replace(spec, seed=setup.seed + 7000)
     out: dict[str, Any] = {d: {str(m): {str(k): {"success": [], "error": []} for k in range(1, views + 1)}
                                for m in refs} for d in ("features", "pixels")}
     for p, truth in enumerate(truths):

@@ -331,16 +331,14 @@ def build_sim_maps(
             return (w.is_free(xy[:, 0], xy[:, 1]) & (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax)
                     & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax))
 
-        def vector_of(pre: str) -> Callable[[np.ndarray], np.ndarray]:
-            return lambda im: to_vector(preprocess(np.clip(np.rint(im), 0, 255).astype(np.uint8), pre), size)
+        def vectors_of(im: np.ndarray) -> np.ndarray:  # every preprocessing's vector, side by side
+            u8 = np.clip(np.rint(im), 0, 255).astype(np.uint8)
+            return np.concatenate([to_vector(preprocess(u8, pre), size) for pre in missing])
 
-        vectors = {}
-        translated = poses
-        for pre in missing:
-            vectors[pre], translated, _ = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m,
-                                                           step, translations, keep=inside,
-                                                           transform=vector_of(pre))
-        poses = translated
+        # each view warped once, whatever the number of preprocessings
+        stacked, poses, _ = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m, step,
+                                             translations, keep=inside, transform=vectors_of)
+        vectors = dict(zip(missing, np.split(stacked, len(missing), axis=1), strict=True))
     else:
         vectors = render_vectors(spec, poses, workers=workers, progress=progress)
     info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)
