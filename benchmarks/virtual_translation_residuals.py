@@ -35,7 +35,7 @@ from drivers.sim.renderer import CameraModel, Renderer
 from drivers.sim.world import grid_poses, load_world
 from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
 from lino_loc.preprocessing import preprocess, to_vector
-from lino_loc.virtual_translations import dense_depth, translate_view
+from lino_loc.virtual_translations import as_uint8, dense_depth, translate_view
 from lino_loc.virtual_views import crop_columns
 from services.evaluation import active
 from services.evaluation.active_setup import product_defaults
@@ -43,8 +43,7 @@ from services.evaluation.machine import machine
 
 
 def _features(img: np.ndarray, setup: Any, pca: Any, margin: int) -> np.ndarray:
-    u8 = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-    v = to_vector(preprocess(u8, setup.preprocess), setup.size)
+    v = to_vector(preprocess(as_uint8(img), setup.preprocess), setup.size)
     return np.asarray(pca.project(crop_columns(v[None], setup.size, margin))[0], dtype=np.float64)
 
 

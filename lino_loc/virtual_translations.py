@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -64,6 +65,28 @@ def dense_depth(disparity: ArrayLike, shape: tuple[int, int], fx: float, baselin
     return z
 
 
+def _forward_project(depth: ArrayLike, intrinsics: tuple[float, float, float, float], right_m: float,
+                     forward_m: float, min_depth_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatImage]:
+    """The pinhole forward projection of the module docstring with a z-buffer: for every target
+    pixel some source pixel lands on, the flat index of the nearest such source pixel, the
+    target's flat index and the point's depth in the moved camera. Pixels of non-finite depth
+    do not move."""
+    z = np.asarray(depth, dtype=np.float64)
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    h, w = z.shape
+    v, u = np.mgrid[0:h, 0:w]
+    z2 = z - forward_m
+    keep = np.flatnonzero(np.isfinite(z2) & (z2 > min_depth_m))
+    zk, z2k = z.ravel()[keep], z2.ravel()[keep]
+    u2 = np.rint(fx * ((u.ravel()[keep] - cx) * zk / fx - right_m) / z2k + cx).astype(np.int64)
+    v2 = np.rint(fy * ((v.ravel()[keep] - cy) * zk / fy) / z2k + cy).astype(np.int64)
+    inside = (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
+    source, target, depth2 = keep[inside], (v2 * w + u2)[inside], z2k[inside]
+    order = np.lexsort((depth2, target))  # by target pixel, nearest first
+    first = order[np.unique(target[order], return_index=True)[1]]
+    return source[first], target[first], depth2[first].astype(np.float32)
+
+
 def warp(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, float, float, float],
          right_m: float, forward_m: float, min_depth_m: float = 0.05) -> FloatImage:
     """The view of a camera moved ``right_m`` to its right and ``forward_m`` forward (see the
@@ -74,24 +97,42 @@ def warp(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, float, flo
     z = np.asarray(depth, dtype=np.float64)
     if img.shape != z.shape or img.ndim != 2:
         raise LinoLocError(f"warp: image {img.shape} and depth {z.shape} must be the same 2-D shape")
+    source, target, _ = _forward_project(z, intrinsics, right_m, forward_m, min_depth_m)
+    out = np.full(img.size, np.nan, dtype=np.float32)
+    out[target] = img.ravel()[source]
+    return out.reshape(img.shape)
+
+
+def scaled_intrinsics(intrinsics: tuple[float, float, float, float], image_shape: tuple[int, int],
+                      shape: tuple[int, int]) -> tuple[float, float, float, float]:
+    """The intrinsics (fx, fy, cx, cy) of an image of ``image_shape`` (height, width) expressed
+    in the pixels of an area-resampled map of ``shape`` (height, width): f scaled by the size
+    ratio, and the principal point mapped between pixel centres, c' = (c + 1/2) s - 1/2."""
+    sy, sx = shape[0] / image_shape[0], shape[1] / image_shape[1]
     fx, fy, cx, cy = (float(v) for v in intrinsics)
-    h, w = img.shape
-    v, u = np.mgrid[0:h, 0:w]
-    x = (u - cx) * z / fx - right_m
-    y = (v - cy) * z / fy
-    z2 = z - forward_m
-    keep = np.isfinite(z2) & (z2 > min_depth_m)
-    u2 = np.rint(fx * x[keep] / z2[keep] + cx).astype(np.int64)
-    v2 = np.rint(fy * y[keep] / z2[keep] + cy).astype(np.int64)
-    inside = (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
-    target = (v2 * w + u2)[inside]
-    depth2 = z2[keep][inside]
-    value = img[keep][inside]
-    order = np.lexsort((depth2, target))  # by target pixel, nearest first
-    first = np.unique(target[order], return_index=True)[1]
-    out = np.full(h * w, np.nan, dtype=np.float32)
-    out[target[order][first]] = value[order][first]
-    return out.reshape(h, w)
+    return fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5
+
+
+def warp_disparity(disparity: ArrayLike, intrinsics: tuple[float, float, float, float], fx_baseline: float,
+                   right_m: float, forward_m: float, min_depth_m: float = 0.05) -> FloatImage:
+    """The sparse disparity map a camera moved ``right_m`` to its right and ``forward_m``
+    forward would measure, from the one measured here (NaN = no value): every valid pixel is
+    the 3-D point at ``Z = fx_baseline / d`` (``fx_baseline`` = f B in the disparity's units,
+    pixels of the full image times metres), moved as :func:`warp` moves it (``intrinsics`` in
+    the map's own pixels, :func:`scaled_intrinsics`), and gets the disparity ``fx_baseline /
+    Z'`` of its new depth. Target pixels no valid point lands on stay NaN (missing data, as
+    the stereo matcher's holes are)."""
+    d = np.asarray(disparity, dtype=np.float64)
+    if d.ndim != 2:
+        raise LinoLocError(f"warp_disparity: the disparity map must be 2-D, got shape {d.shape}")
+    if not fx_baseline > 0:
+        raise LinoLocError(f"warp_disparity: fx_baseline ({fx_baseline}) must be positive")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(np.isfinite(d) & (d > 0), fx_baseline / d, np.nan)
+    _, target, depth2 = _forward_project(z, intrinsics, right_m, forward_m, min_depth_m)
+    out = np.full(d.size, np.nan, dtype=np.float32)
+    out[target] = (fx_baseline / depth2.astype(np.float64)).astype(np.float32)
+    return out.reshape(d.shape)
 
 
 def camera_move(dx: float, dy: float, heading: float) -> tuple[float, float]:
@@ -115,6 +156,12 @@ def translate_view(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, 
     return fill_nearest(view) if np.isfinite(view).any() else None
 
 
+def as_uint8(view: ArrayLike) -> NDArray[np.uint8]:
+    """A synthesized view in the camera's type: rounded to the nearest grey level, clipped to
+    [0, 255] (holes must have been filled)."""
+    return np.clip(np.rint(np.asarray(view, dtype=np.float32)), 0, 255).astype(np.uint8)
+
+
 def lattice_offsets(step: float, refinement: int) -> NDArray[np.float64]:
     """Floor offsets (K, 2), K = refinement^2, of the lattice of spacing ``step / refinement``
     inside one survey cell: ``(i, j) step / refinement`` for i, j in -(m-1)/2 .. (m-1)/2. The
@@ -129,31 +176,45 @@ def lattice_offsets(step: float, refinement: int) -> NDArray[np.float64]:
     return off[np.argsort(np.hypot(off[:, 0], off[:, 1]), kind="stable")]
 
 
+@dataclass(frozen=True)
+class TranslatedSurvey:
+    """A survey seen from the lattice of its cells (:func:`translate_survey`): the views (M, H, W)
+    float32, or the transform of each; their sparse disparity maps (M, h, w) float32, NaN = no
+    value; their robot poses (M, 3); how many views fell back to the survey view."""
+
+    images: np.ndarray
+    disparities: FloatImage
+    poses: NDArray[np.float64]
+    fallbacks: int
+
+
 def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
                      intrinsics: tuple[float, float, float, float], baseline_m: float, step: float,
                      refinement: int, keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None,
                      transform: Callable[[FloatImage], np.ndarray] | None = None,
-                     ) -> tuple[np.ndarray, NDArray[np.float64], int]:
+                     ) -> TranslatedSurvey:
     """Every survey view (``greys`` (N, H, W), its sparse disparity (N, h, w) in pixels of the
     grey image, its robot pose (N, 3)) seen from each :func:`lattice_offsets` of its cell, same
     heading: the real view at offset (0, 0), virtual translations elsewhere, their holes filled
-    by :func:`fill_nearest`. ``keep(xy)`` (M, 2) -> bool (M,) drops positions (e.g. not free);
-    the offsets kept depend on the position alone, so every lattice position holds the same
-    headings as its survey position (the map stays a product grid of positions x headings,
-    which the action evaluation's fast path needs). Where a view cannot be warped (its
-    disparity has no value, or nothing lands in the moved camera) the survey view itself
-    stands for it, as in a map without translations.
+    by :func:`fill_nearest`, and beside each its disparity map, moved by
+    :func:`warp_disparity` (its holes left as holes). ``keep(xy)`` (M, 2) -> bool (M,) drops
+    positions (e.g. not free); the offsets kept depend on the position alone, so every lattice
+    position holds the same headings as its survey position (the map stays a product grid of
+    positions x headings, which the action evaluation's fast path needs). Where a view cannot
+    be warped (its disparity has no value, or nothing lands in the moved camera) the survey
+    view and its disparity stand for it, as in a map without translations.
 
-    Returns the images (M, H, W) float32 (with ``transform``: ``transform(image)`` of each,
-    stacked, e.g. the map's working vector, so the full-size views are never all held), their
-    poses (M, 3) and how many views fell back to the survey view."""
+    With ``transform``, ``transform(image)`` of each view is kept (e.g. the map's working
+    vector), so the full-size views are never all held."""
     g = np.asarray(greys)
     d = np.asarray(disparities, dtype=np.float32)
     p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     if not (g.shape[0] == d.shape[0] == p.shape[0]):
         raise LinoLocError(f"translate_survey: {g.shape[0]} images, {d.shape[0]} disparity maps, {p.shape[0]} poses")
     offsets = lattice_offsets(step, refinement)
+    fx_baseline = float(intrinsics[0]) * baseline_m
     images: list[np.ndarray] = []
+    disps: list[np.ndarray] = []
     out_poses: list[np.ndarray] = []
     fallbacks = 0
     keep_as = transform or (lambda im: im)
@@ -162,14 +223,19 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
         ok = np.ones(len(targets), dtype=bool) if keep is None else np.asarray(keep(targets[:, :2]), dtype=bool)
         source = keep_as(np.asarray(img, dtype=np.float32))
         images.append(source)
+        disps.append(disp)
         out_poses.append(targets[0])
         depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m) if np.isfinite(disp).any() else None
+        small = scaled_intrinsics(intrinsics, img.shape, disp.shape)
         for t in targets[1:][ok[1:]]:
             view = None if depth is None else translate_view(img, depth, intrinsics, pose, t)
             if view is None:
                 fallbacks += 1
                 images.append(source)
+                disps.append(disp)
             else:
                 images.append(keep_as(view))
+                right, forward = camera_move(float(t[0] - pose[0]), float(t[1] - pose[1]), float(pose[2]))
+                disps.append(warp_disparity(disp, small, fx_baseline, right, forward))
             out_poses.append(t)
-    return np.asarray(images), np.asarray(out_poses), fallbacks
+    return TranslatedSurvey(np.asarray(images), np.asarray(disps, dtype=np.float32), np.asarray(out_poses), fallbacks)

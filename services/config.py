@@ -198,6 +198,20 @@ class MapBuildConfig(_Section):
         "virtual_step_deg apart (lino_loc.virtual_views); 1 = the images alone"
     )
     virtual_step_deg: float = Field(3.0, gt=0.0, le=30.0, description="degrees between virtual headings")
+    translations: int = Field(
+        1, ge=1, le=9, description="odd m: every survey image is also seen from the lattice every step / m inside "
+        "its cell, synthesized from its stereo disparity (lino_loc.translated_dataset; needs disparity = true); "
+        "1 = the survey positions alone"
+    )
+
+    @model_validator(mode="after")
+    def _translations_need_disparity(self) -> MapBuildConfig:
+        if self.translations % 2 == 0:
+            raise ValueError(f"translations must be odd (got {self.translations})")
+        if self.translations > 1 and not (self.disparity and self.disparity_source == "stereo-matcher"):
+            raise ValueError("translations need the survey's stereo disparity: set disparity = true "
+                             "(disparity_source = \"stereo-matcher\")")
+        return self
 
 
 class MapConfig(_Section):

@@ -48,6 +48,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lino_loc.appearance_map import DEFAULT_SIZE, AppearanceMap, build_map
 from lino_loc.atomic_file import pid_alive
 from lino_loc.errors import LinoLocError
@@ -320,6 +322,25 @@ def _code_fingerprint() -> str:
     return code_fingerprint()
 
 
+def _translated(world: Any, dataset: Any, out: Path, build: MapBuildConfig) -> Any:
+    """The survey seen from the lattice every ``build.step / build.translations`` inside its cells
+    (:func:`lino_loc.translated_dataset.translate_dataset`), lattice positions kept where the
+    world's floor is free inside the mapped area (the floor plan a simulated building has)."""
+    from lino_loc.dataset import Dataset
+    from lino_loc.translated_dataset import translate_dataset
+
+    xmin, xmax, ymin, ymax = world.mapped_area
+
+    def inside(xy: np.ndarray) -> np.ndarray:
+        return (world.is_free(xy[:, 0], xy[:, 1]) & (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax)
+                & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax))
+
+    report = translate_dataset(dataset, out, build.translations, step=build.step, keep=inside, overwrite=True)
+    log.info("virtual translations: %d survey images -> %d map images (%d fell back to the survey view)",
+             report.rows_in, report.rows_out, report.fallbacks)
+    return Dataset.open(out)
+
+
 def _build_record(build: MapBuildConfig, world_fingerprint: str) -> dict[str, Any]:
     return {
         "version": SIDECAR_VERSION,
@@ -425,8 +446,12 @@ def ensure_sim_map(
             )
             size = (min(DEFAULT_SIZE[0], build.width), min(DEFAULT_SIZE[1], build.height))
             channels = ("intensity", "disparity") if build.disparity else ("intensity",)
+            dataset = Dataset.open(survey_dir)
+            if build.translations > 1:
+                dataset = _translated(world, dataset, survey_dir.with_name(survey_dir.name + f".t{build.translations}"),
+                                      build)
             amap = build_map(
-                Dataset.open(survey_dir), n_features=build.features, preprocess=build.preprocess,
+                dataset, n_features=build.features, preprocess=build.preprocess,
                 size=size, channels=channels, seed=seed, disparity_features=build.disparity_features,
                 virtual_offsets=None if build.virtual_headings == 1 else offsets(
                     math.radians(build.virtual_step_deg), build.virtual_headings),
@@ -438,5 +463,6 @@ def ensure_sim_map(
             os.replace(tmp, side)
         finally:
             shutil.rmtree(survey_dir, ignore_errors=True)
+            shutil.rmtree(survey_dir.with_name(survey_dir.name + f".t{build.translations}"), ignore_errors=True)
         log.info("simulated map built: %d map entries in %.1f s -> %s", len(amap), time.monotonic() - t0, map_path)
         return amap, True

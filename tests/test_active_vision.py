@@ -277,3 +277,4 @@ def test_bench_reports_the_cost_table() -> None:
     assert res["particles"]["50"]["median_ms"] > 0 and res["generic_path_150x22"]["cpu_median_ms"] >= 0
     assert res["map_entries"] == 1056
     assert res["interpolated_150x22"]["map_entries"] == 5280 and res["interpolated_150x22"]["median_ms"] > 0
+    assert res["translated_150x22"]["map_entries"] == 31 * 10 * 120 and res["translated_150x22"]["median_ms"] > 0

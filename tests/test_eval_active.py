@@ -267,16 +267,16 @@ def test_paper_runs_the_papers_map(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_virtual_translations_fill_the_survey_cells(capsys: pytest.CaptureFixture[str]) -> None:
     """``--translations 3``: every survey image also gives the views of its cell's 25 cm lattice
-    (free positions), so the map holds more entries than images x virtual headings; success is
-    still judged on the survey's own grid. An even refinement, or the disparity channel, is a
+    (free positions), so the map holds more entries than images x virtual headings, in both
+    channels; success is still judged on the survey's own grid. An even refinement is a
     one-line error."""
     assert main(["eval", "active", "--json", *TINY, "--movements", "1", "--virtual-headings", "1",
-                 "--translations", "3", "--channels", "intensity"]) == 0
+                 "--translations", "3", "--channels", "intensity,disparity"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert res["setup"]["translations"] == 3
+    assert res["setup"]["translations"] == 3 and res["setup"]["channels"] == ["intensity", "disparity"]
     assert res["map_images"] < res["map_entries"] <= 9 * res["map_images"]
     for bad, text in ((["--translations", "2", "--channels", "intensity"], "odd"),
-                      (["--translations", "3"], "--channels intensity")):
+                      (["--translations", "-1"], "odd")):
         assert main(["eval", "active", *TINY, *bad]) == 2
         err = capsys.readouterr().err
         assert text in err and "Traceback" not in err

@@ -10,13 +10,16 @@ import pytest
 
 from lino_loc.errors import LinoLocError
 from lino_loc.virtual_translations import (
+    as_uint8,
     camera_move,
     dense_depth,
     fill_nearest,
     lattice_offsets,
+    scaled_intrinsics,
     translate_survey,
     translate_view,
     warp,
+    warp_disparity,
 )
 
 INTR = (100.0, 100.0, 31.5, 23.5)  # fx, fy, cx, cy of a 64 x 48 image
@@ -86,14 +89,52 @@ def test_lattice_offsets_stay_inside_the_cell() -> None:
         lattice_offsets(0.75, 2)
 
 
+def test_scaled_intrinsics_map_pixel_centres() -> None:
+    """A 64 x 48 image area-averaged to 16 x 12: f / 4, and the principal point between pixel
+    centres (c + 1/2) / 4 - 1/2, so the image centre stays the map's centre."""
+    fx, fy, cx, cy = scaled_intrinsics(INTR, (48, 64), (12, 16))
+    assert (fx, fy) == (25.0, 25.0)
+    assert cx == pytest.approx((31.5 + 0.5) / 4 - 0.5) == pytest.approx(7.5)
+    assert cy == pytest.approx(5.5)
+
+
+def test_warp_disparity_of_a_wall_closes_in_as_the_camera_moves_forward() -> None:
+    """A fronto-parallel wall at Z = 3 m, f B = 7.5 px m: 1 m forward every landed pixel reads
+    f B / 2 m = 3.75 px; a move to the side shifts the wall by fx r / Z pixels and leaves its
+    disparity; the uncovered border and the source's holes stay NaN."""
+    fb = 100.0 * 0.075
+    disp = np.full((48, 64), fb / 3.0, dtype=np.float32)
+    out = warp_disparity(disp, INTR, fb, right_m=0.0, forward_m=1.0)
+    landed = np.isfinite(out)
+    assert landed.mean() > 0.4 and np.allclose(out[landed], fb / 2.0)
+    side = warp_disparity(disp, INTR, fb, right_m=0.06, forward_m=0.0)  # 100 * 0.06 / 3 = 2 px left
+    assert np.all(np.isnan(side[:, -2:])) and np.allclose(side[:, :-2], fb / 3.0)
+    holes = disp.copy()
+    holes[:, 10:20] = np.nan
+    moved = warp_disparity(holes, INTR, fb, right_m=0.06, forward_m=0.0)
+    assert np.all(np.isnan(moved[:, 8:18])) and np.isfinite(moved[:, 18:62]).all()
+    with pytest.raises(LinoLocError, match="fx_baseline"):
+        warp_disparity(disp, INTR, 0.0, 0.0, 0.0)
+
+
+def test_warp_disparity_keeps_the_nearest_surface() -> None:
+    """An occluder (Z = 1 m) before a wall (Z = 4 m): after a move to the side the pixels where
+    both land read the occluder's disparity (the z-buffer of :func:`warp`)."""
+    fb = 100.0 * 0.075
+    disp = np.full((48, 64), fb / 4.0, dtype=np.float32)
+    disp[:, 30:40] = fb / 1.0
+    out = warp_disparity(disp, INTR, fb, right_m=0.1, forward_m=0.0)  # occluder 10 px left, wall 2.5 px
+    assert np.allclose(out[:, 20:30], fb)  # the occluder, moved 10 px, in front of the wall
+
+
 def test_translate_survey_keeps_the_real_view_and_drops_what_keep_refuses() -> None:
     rng = np.random.default_rng(1)
     greys = rng.integers(0, 255, (2, 48, 64), dtype=np.uint8)
     disps = np.full((2, 12, 16), 100.0 * 0.075 / 3.0, dtype=np.float32)  # a wall 3 m away
     disps[1] = np.nan  # no stereo: only the real view
     poses = np.array([[1.0, 1.0, 0.0], [3.0, 1.0, 0.5]])
-    images, out, fallbacks = translate_survey(greys, disps, poses, INTR, 0.075, 0.75, 3,
-                                              keep=lambda xy: xy[:, 1] >= 1.0)
+    survey = translate_survey(greys, disps, poses, INTR, 0.075, 0.75, 3, keep=lambda xy: xy[:, 1] >= 1.0)
+    images, out, fallbacks = survey.images, survey.poses, survey.fallbacks
     # each pose: itself + the 5 offsets with y >= 1 (of 8 others: dy = 0 (2), dy = +0.25 (3))
     assert out.shape == (12, 3) and images.shape == (12, 48, 64)
     assert np.array_equal(images[0], greys[0].astype(np.float32)) and np.array_equal(out[0], poses[0])
@@ -103,9 +144,19 @@ def test_translate_survey_keeps_the_real_view_and_drops_what_keep_refuses() -> N
     # pose 1 has no stereo: its five translations fall back to its own view
     assert fallbacks == 5 and all(np.array_equal(images[k], greys[1].astype(np.float32)) for k in range(6, 12))
     assert not np.array_equal(images[1], images[0])  # pose 0's are warped
+    # the disparity maps move with the views: the real one first, the fallbacks' their survey's
+    assert survey.disparities.shape == (12, 12, 16)
+    assert np.array_equal(survey.disparities[0], disps[0])
+    assert all(np.all(np.isnan(survey.disparities[k])) for k in range(6, 12))
+    fb = 100.0 * 0.075
+    for k in range(1, 6):  # the wall, 3 m minus the forward part of each move
+        right, forward = camera_move(*(out[k, :2] - poses[0, :2]), 0.0)
+        d = survey.disparities[k]
+        assert np.isfinite(d).any() and np.allclose(d[np.isfinite(d)], fb / (3.0 - forward), rtol=1e-5)
     # with a transform only its outputs are kept (the map's working vectors)
-    vecs, out2, _ = translate_survey(greys, disps, poses, INTR, 0.075, 0.75, 3, keep=lambda xy: xy[:, 1] >= 1.0,
-                                     transform=lambda im: im[::8, ::8].ravel())
+    moved = translate_survey(greys, disps, poses, INTR, 0.075, 0.75, 3, keep=lambda xy: xy[:, 1] >= 1.0,
+                             transform=lambda im: im[::8, ::8].ravel())
+    vecs, out2 = moved.images, moved.poses
     assert vecs.shape == (12, 48) and np.array_equal(vecs, images[:, ::8, ::8].reshape(12, -1))
     assert np.array_equal(out2, out)
 
@@ -132,11 +183,41 @@ def test_a_rendered_view_translated_is_nearer_the_real_view_than_the_survey_view
         real = renderer.render(x + dx, y + dy, th, stereo=False, rng=np.random.default_rng((k, 1))).grey
 
         def vec(im: np.ndarray) -> np.ndarray:
-            return to_vector(preprocess(np.clip(np.rint(im), 0, 255).astype(np.uint8), "none"), size)
+            return to_vector(preprocess(as_uint8(im), "none"), size)
 
         d_virtual = np.linalg.norm(vec(real) - vec(virtual))
         d_survey = np.linalg.norm(vec(real) - vec(src.grey))
         assert d_virtual < 0.6 * d_survey, (k, d_virtual, d_survey)
+
+
+def test_a_rendered_disparity_map_moved_is_nearer_the_disparity_there() -> None:
+    """The simulated office: a survey view's sparse disparity moved 25 cm (four moves) is on
+    average nearer the exact disparity at the new pose (the renderer's depth, used here only as
+    the reference) than the unmoved map is, over the pixels valid in both. A move mostly along
+    the optical axis changes the disparity of a far wall by less than the matcher's noise, so the
+    mean over the moves is what is checked."""
+    from drivers.sim.renderer import CameraModel, Renderer
+    from drivers.sim.world import load_world
+    from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
+
+    renderer = Renderer(load_world("office"), camera=CameraModel(width=160, height=120))
+    camera = renderer.camera
+    intr = camera.intrinsics()
+    fb = intr[0] * camera.baseline_m
+    moved_err, survey_err = [], []
+    for k, (x, y, th, dx, dy) in enumerate([(2.0, 1.5, 0.3, 0.25, 0.0), (5.0, 1.0, 2.0, 0.0, 0.25),
+                                            (3.0, 2.0, -1.0, -0.25, 0.25), (4.0, 1.2, 3.0, 0.25, 0.25)]):
+        src = renderer.render(x, y, th, stereo=True, rng=np.random.default_rng((k, 0)))
+        disp = downsample_sparse(compute_disparity(src.left, src.right, StereoConfig()), (40, 30))
+        right, forward = camera_move(dx, dy, th)
+        moved = warp_disparity(disp, scaled_intrinsics(intr, src.grey.shape, disp.shape), fb, right, forward)
+        depth = renderer.render(x + dx, y + dy, th, stereo=True, rng=np.random.default_rng((k, 1))).depth
+        exact = downsample_sparse((fb / depth).astype(np.float32), (40, 30))
+        ok = np.isfinite(moved) & np.isfinite(disp) & np.isfinite(exact)
+        assert ok.mean() > 0.05
+        moved_err.append(np.mean(np.abs(moved[ok] - exact[ok])))
+        survey_err.append(np.mean(np.abs(disp[ok] - exact[ok])))
+    assert np.mean(moved_err) < 0.9 * np.mean(survey_err), (moved_err, survey_err)
 
 
 def test_a_translated_map_is_the_same_whatever_other_preprocessings_are_built_with_it() -> None:

@@ -7,6 +7,10 @@
   ``ok``, and with ``--json`` the list ``problems`` too).
 - ``lino-loc dataset import-tum SEQUENCE --out DATASET``: the converted folder passes the
   same checks, or the command fails with the first problem.
+- ``lino-loc dataset translate DATASET --out DATASET2 [--refinement 3] [--step S]``: every row
+  also seen from the lattice every ``step / refinement`` inside its survey cell, by virtual
+  translations with its own stereo disparity (:mod:`lino_loc.translated_dataset`); an
+  interrupted run continues when started again. ``lino-loc map build DATASET2`` makes the map.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import json
 import sys
 
 from lino_loc.dataset import Dataset, dataset_problems, require_valid
+from lino_loc.translated_dataset import translate_dataset
 from lino_loc.tum_import import TUM_INTRINSICS, import_tum
 from services.progress import Progress
 
@@ -60,6 +65,20 @@ def _check(args: argparse.Namespace) -> int:
     return 2 if problems else 0
 
 
+def _translate(args: argparse.Namespace) -> int:
+    bar = Progress("dataset translate")
+    try:
+        report = translate_dataset(Dataset.open(args.dataset), args.out, args.refinement, step=args.step,
+                                   overwrite=args.overwrite, progress=bar.update)
+    finally:
+        bar.close()
+    summary = {"out": str(args.out), "rows_in": report.rows_in, "rows_out": report.rows_out,
+               "fallbacks": report.fallbacks, "step": report.step, "refinement": report.refinement,
+               "resumed": report.resumed}
+    print(json.dumps(summary, indent=None if args.json else 2))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("dataset", help="import or check a dataset folder")
     dsub = parser.add_subparsers(dest="dataset_command", metavar="ACTION", parser_class=type(parser))
@@ -74,3 +93,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset")
     p.add_argument("--json", action="store_true", help="one JSON object on one line")
     p.set_defaults(func=_check)
+    p = dsub.add_parser("translate", help="add virtual translations between the survey positions (both channels)")
+    p.add_argument("dataset", help="survey dataset folder with stereo disparity")
+    p.add_argument("--out", required=True, help="dataset folder to write (an interrupted run there continues)")
+    p.add_argument("--refinement", type=int, default=3,
+                   help="odd m: views every step / m inside each survey cell (default %(default)s)")
+    p.add_argument("--step", type=float, default=None,
+                   help="the survey's spacing, metres (default: the median distance between neighbouring positions)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    p.add_argument("--json", action="store_true", help="one JSON object on one line")
+    p.set_defaults(func=_translate)

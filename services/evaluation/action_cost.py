@@ -11,7 +11,8 @@ uniform initial belief; converged beliefs have many duplicate particles, which a
 and cost less). Reported: median wall-clock and median process-CPU time per evaluation
 (the CPU time is the fairer figure when other jobs share the machine), for the fast path
 (product-grid map) and, at 150 particles and 22 actions, the generic path (any map) and the
-interpolated sensor model's evaluator on the map with virtual headings. The target is 20 ms
+interpolated sensor model's evaluator on the map with virtual headings, and the map with virtual
+headings and virtual translations (positions every 25 cm). The target is 20 ms
 for 150 particles and 22 actions.
 """
 
@@ -27,17 +28,19 @@ ACTIONS = (11, 22, 44)
 TARGET_MS = 20.0
 
 
-def office_like_map(seed: int = 0, heading_step_deg: float = 15.0) -> tuple[Any, Any]:
-    """(poses (N, 3), features (N, 5)): the office grid (11 x 4 positions, headings every
-    ``heading_step_deg``: 1056 entries at 15 deg, 5280 at 3 deg as with virtual headings) with
-    smooth synthetic features."""
+def office_like_map(seed: int = 0, heading_step_deg: float = 15.0, refinement: int = 1) -> tuple[Any, Any]:
+    """(poses (N, 3), features (N, 5)): the office grid (11 x 4 positions every 75 cm, headings
+    every ``heading_step_deg``: 1056 entries at 15 deg, 5280 at 3 deg as with virtual headings;
+    ``refinement`` m: positions every 75 / m cm over the same area, as a map with virtual
+    translations has them: 31 x 10 x 120 = 37200 entries for m = 3 at 3 deg) with smooth
+    synthetic features."""
     import numpy as np
 
     from lino_loc.poses import wrap_angle
 
     rng = np.random.default_rng(seed)
-    xs = np.arange(11) * 0.75
-    ys = np.arange(4) * 0.75
+    xs = np.arange(10 * refinement + 1) * (0.75 / refinement)
+    ys = np.arange(3 * refinement + 1) * (0.75 / refinement)
     hs = wrap_angle(np.radians(np.arange(int(round(360.0 / heading_step_deg))) * heading_step_deg))
     gx, gy, gh = np.meshgrid(xs, ys, hs, indexing="ij")
     poses = np.column_stack([gx.ravel(), gy.ravel(), gh.ravel()])
@@ -121,6 +124,11 @@ def run_active_bench(repeats: int = 30, particles: tuple[int, ...] = PARTICLES,
     out["virtual_headings_150x22"] = {"map_entries": int(len(vposes)),
                                       **_time(lambda: vev.evaluate(p, lw), repeats)}
     out["interpolated_150x22"] = _interpolated(vposes, vfeats, p, lw, repeats)
+    # virtual translations (lino_loc.virtual_translations) on top: positions every 25 cm
+    tposes, tfeats = office_like_map(heading_step_deg=3.0, refinement=3)
+    tev = ActionEvaluator(NearestNeighbourSensorModel(tposes, tfeats, SensorModelConfig(j=10)),
+                          ActiveVisionConfig(n_actions=22, max_particles=150))
+    out["translated_150x22"] = {"map_entries": int(len(tposes)), **_time(lambda: tev.evaluate(p, lw), repeats)}
     ref = out["particles"].get("150") or out["actions"].get("22")
     out["target"] = {"particles": 150, "actions": 22, "ms_max": TARGET_MS,
                      "met_wall": bool(ref and ref["median_ms"] <= TARGET_MS),

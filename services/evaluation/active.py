@@ -63,6 +63,7 @@ from lino_loc.virtual_views import crop_columns
 from services.evaluation import active_stats
 from services.evaluation.active_bounds import feature_diagnostics, ideal_hits, map_oracle_hits
 from services.evaluation.active_setup import ActiveSetup
+from services.evaluation.decision_rules import MapTable, decide
 from services.evaluation.views import ViewSpec, build_sim_maps, render_vectors
 
 log = logging.getLogger(__name__)
@@ -156,7 +157,8 @@ def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarr
     model = setup.sensor_model_for(entries, map_features)
     model_d = None if disparity_features is None else setup.sensor_model_for(entries, disparity_features, model.bounds)
     _ctx.update(setup=setup, world=world, model=model, model_d=model_d,
-                evaluator=action_evaluator(model, setup.active), map_poses=map_poses)
+                evaluator=action_evaluator(model, setup.active), map_poses=map_poses,
+                map_table=MapTable(entries, map_features) if "map_match" in setup.decisions else None)
 
 
 def _observe(fi: np.ndarray, fd: np.ndarray | None) -> tuple[Any, float]:
@@ -194,6 +196,15 @@ def roughen(pf: AuxiliaryParticleFilter, setup: ActiveSetup, mixture: Any = None
     pf.set_particles(pf.particles + jitter, pf.log_weights)
 
 
+def _estimate(pf: AuxiliaryParticleFilter, ests: list[np.ndarray], views: list[tuple[float, Any, np.ndarray]],
+              decided: dict[str, list[np.ndarray]]) -> None:
+    """Append the filter's estimate to ``ests`` and each decision rule's to ``decided``
+    (:mod:`services.evaluation.decision_rules`, from the ``views`` taken so far)."""
+    ests.append(pf.estimate().pose)
+    for rule, poses in decided.items():
+        poses.append(decide(rule, ests[-1], views, _ctx["map_table"]))
+
+
 def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) -> dict[str, Any]:
     """All runs and strategies at one test position: errors and successes (R, moves + 1) per
     strategy, the H(u) evaluation times, and (position 0, run 0) particle snapshots."""
@@ -210,7 +221,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
         return world.is_free(xy[:, 0], xy[:, 1])
 
     zero = np.zeros(3)
-    out: dict[str, Any] = {s: {"error": [], "success": [], "success_pose": [], "heading_error": [], "pans": []}
+    out: dict[str, Any] = {s: {"error": [], "success": [], "success_pose": [], "heading_error": [], "pans": [],
+                               "decisions": {rule: [] for rule in setup.decisions}}
                            for s in setup.strategies}
 
     eval_ms: list[float] = []
@@ -229,11 +241,14 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
             a = a0
             ests, seq = [], [a]
             reliability = PanReliability(setup.active.reliability)  # the entropy strategy's (a no-op when off)
+            views: list[tuple[float, Any, np.ndarray]] = []  # (pan, mixture, features): the decision rules'
+            decided: dict[str, list[np.ndarray]] = {rule: [] for rule in setup.decisions}
             mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
             reliability.observe(float(pans[a]), novelty)
             pf.update(zero, float(pans[a]), mix)
             roughen(pf, setup, mix, float(pans[a]))
-            ests.append(pf.estimate().pose)
+            views.append((float(pans[a]), mix, feats[a]))
+            _estimate(pf, ests, views, decided)
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
                 snaps["start"] = (pf.particles.copy(), pf.weights.copy())
             for _ in range(setup.movements):
@@ -251,7 +266,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
                 reliability.observe(float(pans[a]), novelty)
                 pf.update(zero, float(pans[a]), mix)
                 roughen(pf, setup, mix, float(pans[a]))
-                ests.append(pf.estimate().pose)
+                views.append((float(pans[a]), mix, feats[a]))
+                _estimate(pf, ests, views, decided)
             est = np.asarray(ests)
             truths = np.repeat(truth[None, :], len(ests), axis=0)
             out[strat]["error"].append(position_errors(est, truths))
@@ -259,6 +275,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
             out[strat]["success_pose"].append(success_pose(est, truths, _ctx["map_poses"], step, hstep))
             out[strat]["heading_error"].append(np.abs(wrap_angle(est[:, 2] - truth[2])))
             out[strat]["pans"].append(seq)
+            for rule, poses in decided.items():
+                out[strat]["decisions"][rule].append(success(np.asarray(poses), truths, _ctx["map_poses"]))
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
                 snaps["end"] = (pf.particles.copy(), pf.weights.copy())
                 snaps["entropy_start_end"] = (
@@ -268,6 +286,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
     for s in out.values():
         for key in ("error", "success", "success_pose", "heading_error"):
             s[key] = np.asarray(s[key])
+        s["decisions"] = {rule: np.asarray(v) for rule, v in s["decisions"].items()}
     return {"pos": pos, "strategies": out, "eval_ms": eval_ms, "snapshots": snaps, "covered": covered}
 
 
@@ -323,6 +342,19 @@ def comparisons(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dic
     return out
 
 
+def _failure_errors(err: np.ndarray, suc: np.ndarray) -> dict[str, list[Any]]:
+    """The position errors (m) of the runs that failed the criterion, per k (runs (N, K)):
+    their count, median and 90th percentile (None where none failed). Small errors say the
+    estimate was near the truth but across a cell border; large ones, a wrong place."""
+    out: dict[str, list[Any]] = {"count": [], "median": [], "p90": []}
+    for k in range(err.shape[1]):
+        e = err[~suc[:, k].astype(bool), k]
+        out["count"].append(int(e.size))
+        out["median"].append(float(np.median(e)) if e.size else None)
+        out["p90"].append(float(np.percentile(e, 90)) if e.size else None)
+    return out
+
+
 def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
     """Per strategy the error statistics and success ratios after each movement, the success
     ratios with their 95 % intervals (``success_ci95``, ``success_pose_ci95``, [lo, hi] per k)."""
@@ -344,7 +376,18 @@ def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict
             "success_pose": [float(v) for v in suc_pose.mean(axis=0)],
             "success_pose_ci95": active_stats.intervals_json(outcomes(parts, s, "success_pose"), counts),
             "median_heading_error_deg": [float(v) for v in np.degrees(np.median(herr, axis=0))],
+            "failure_error_m": _failure_errors(err, suc),
         }
+        rules = parts[0]["strategies"][s]["decisions"]
+        if rules:  # services.evaluation.decision_rules on the same runs, with the estimate's statistics
+            summary[s]["decisions"] = {}
+            for rule in rules:
+                hits = np.stack([p["strategies"][s]["decisions"][rule] for p in parts])
+                summary[s]["decisions"][rule] = {
+                    "success": [float(v) for v in hits.mean(axis=(0, 1))],
+                    "success_ci95": active_stats.intervals_json(hits, counts),
+                    "minus_estimate": active_stats.paired_difference(hits, outcomes(parts, s), counts),
+                }
     return summary
 
 

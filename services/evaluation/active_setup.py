@@ -80,6 +80,7 @@ class ActiveSetup:
     min_grid_distance: float = 0.15
     criterion_step: float | None = None  # the survey spacing success is judged on (None: ``step``)
     translations: int = 1  # odd m > 1: the map also holds virtual translations every step / m
+    decisions: tuple[str, ...] = ()  # services.evaluation.decision_rules reported beside the estimate
     sweep_stride: int = 7
     width: int = 320
     height: int = 240
@@ -145,6 +146,8 @@ class ActiveSetup:
             out["criterion_step"] = self.criterion_step
         if self.translations > 1:  # reported only when set
             out["translations"] = self.translations
+        if self.decisions:  # reported only when set
+            out["decisions"] = list(self.decisions)
         if a.reliability.enabled:  # reported when on (lino_loc.pan_reliability)
             out["pan_reliability"] = a.reliability.model_dump()
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was

@@ -272,7 +272,8 @@ def build_sim_maps(
     with ``disparity_features`` features (default ``features``). ``translations`` m > 1 (odd):
     every survey view is also seen from the lattice of spacing ``step / m`` inside its cell by
     virtual translations with its own sparse disparity
-    (:func:`lino_loc.virtual_translations.translate_survey`; intensity channels only).
+    (:func:`lino_loc.virtual_translations.translate_survey`), the disparity channel by moving
+    that sparse disparity itself.
     """
     import math
 
@@ -283,11 +284,9 @@ def build_sim_maps(
         virtual_setup,
     )
     from lino_loc.dataset import CameraInfo
-    from lino_loc.virtual_translations import translate_survey
+    from lino_loc.virtual_translations import as_uint8, translate_survey
     from lino_loc.virtual_views import augment_poses, offsets
 
-    if translations > 1 and disparity:
-        raise ValueError("build_sim_maps: virtual translations give intensity channels only, not the disparity channel")
     w = load_world(world)
     cam = CameraModel(width=width, height=height)
     stereo = stereo or StereoConfig()
@@ -332,13 +331,15 @@ def build_sim_maps(
                     & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax))
 
         def vectors_of(im: np.ndarray) -> np.ndarray:  # every preprocessing's vector, side by side
-            u8 = np.clip(np.rint(im), 0, 255).astype(np.uint8)
-            return np.concatenate([to_vector(preprocess(u8, pre), size) for pre in missing])
+            return np.concatenate([to_vector(preprocess(as_uint8(im), pre), size) for pre in missing])
 
         # each view warped once, whatever the number of preprocessings
-        stacked, poses, _ = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m, step,
-                                             translations, keep=inside, transform=vectors_of)
-        vectors = dict(zip(missing, np.split(stacked, len(missing), axis=1), strict=True))
+        moved = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m, step, translations,
+                                 keep=inside, transform=vectors_of)
+        poses = moved.poses
+        vectors = dict(zip(missing, np.split(moved.images, len(missing), axis=1), strict=True))
+        if disparity:  # the moved disparity maps are already at the working size
+            vectors["disparity"] = moved.disparities.reshape(len(poses), -1)
     else:
         vectors = render_vectors(spec, poses, workers=workers, progress=progress)
     info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)

@@ -26,6 +26,7 @@ from services.evaluation.active_setup import (
     product_defaults,
 )
 from services.evaluation.commands.localization_cmd import parse_channels
+from services.evaluation.decision_rules import DECISIONS
 from services.evaluation.plotting import pyplot
 from services.progress import Progress
 
@@ -171,9 +172,13 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
     """The experiment's setup from the command line: :func:`product_defaults` or with
     ``--paper`` :func:`paper_setup`, then the method options given."""
     given = {k: getattr(args, k) for k in _METHOD if getattr(args, k) is not None}
+    decisions = tuple(d.strip() for d in args.decisions.split(",") if d.strip())
+    unknown = [d for d in decisions if d not in DECISIONS]
+    if unknown:
+        raise LinoLocError(f"--decisions: unknown rule {unknown[0]!r} (known: {', '.join(DECISIONS)})")
     experiment = dict(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
                       scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal,
-                      criterion_step=args.criterion_step)
+                      criterion_step=args.criterion_step, decisions=decisions)
     if args.criterion_step is not None and not args.criterion_step > 0.0:
         raise LinoLocError(f"--criterion-step must be positive (got {args.criterion_step})")
     for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
@@ -193,8 +198,6 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
         err = exc.errors()[0]
         field = str(err["loc"][0]) if err["loc"] else ""
         raise LinoLocError(f"{_CONFIG_OPTIONS.get(field, field)}: {err['msg']}") from None
-    if setup.translations > 1 and "disparity" in setup.channels:
-        raise LinoLocError("--translations synthesizes the intensity channel only: give --channels intensity")
     return setup
 
 
@@ -252,6 +255,9 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="judge success (section 6.1) on a survey grid of this spacing, metres, and place the "
                    "test positions off it (default: --step); with a denser map (--step 0.375 --criterion-step "
                    "0.75) it measures what views between the survey's poses would give")
+    p.add_argument("--decisions", default="", metavar="RULES",
+                   help="also judge these final decisions on the same runs, comma-separated: "
+                   f"{', '.join(DECISIONS)} (services.evaluation.decision_rules)")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--plot", metavar="DIR", default=None, help="write Fig. 3 and Fig. 4 PNGs here")
@@ -299,8 +305,8 @@ def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
     p.add_argument("--j", type=int, help=f"nearest neighbours of the sensor model (default {dv['j']})")
     p.add_argument("--translations", type=int,
                    help="odd m > 1: the map also holds every survey view seen from a lattice every --step / m "
-                   "inside its cell, synthesized from the view's sparse stereo disparity "
-                   f"(lino_loc.virtual_translations; intensity channel only; default {dv['translations']})")
+                   "inside its cell, synthesized from the view's sparse stereo disparity, both channels "
+                   f"(lino_loc.virtual_translations; default {dv['translations']})")
     p.add_argument("--sigma-xy", type=float,
                    help=f"the sensor model's kernel width in x and y, metres (default {dv['sigma_xy']:g}; a map "
                    "denser than the survey may want a narrower one)")

@@ -28,6 +28,9 @@ def _table(res: dict[str, Any]) -> str:
     v = res["virtual_headings_150x22"]
     lines.append(f"{'3-deg map, 150 x 22':<24}{v['median_ms']:>12.2f}{v['cpu_median_ms']:>10.2f}"
                  f"   ({v['map_entries']} entries: virtual headings)")
+    t3 = res["translated_150x22"]
+    lines.append(f"{'25 cm, 3-deg map, 150 x 22':<24}{t3['median_ms']:>12.2f}{t3['cpu_median_ms']:>10.2f}"
+                 f"   ({t3['map_entries']} entries: virtual translations)")
     i = res["interpolated_150x22"]
     lines.append(f"{'interpolated, 150 x 22':<24}{i['median_ms']:>12.2f}{i['cpu_median_ms']:>10.2f}"
                  f"   (3-deg map; model built in {i['setup_s']:.2f} s)")
