@@ -48,8 +48,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lino_loc.appearance_map import DEFAULT_SIZE, AppearanceMap, build_map
 from lino_loc.atomic_file import pid_alive
 from lino_loc.errors import LinoLocError
@@ -329,13 +327,8 @@ def _translated(world: Any, dataset: Any, out: Path, build: MapBuildConfig) -> A
     from lino_loc.dataset import Dataset
     from lino_loc.translated_dataset import translate_dataset
 
-    xmin, xmax, ymin, ymax = world.mapped_area
-
-    def inside(xy: np.ndarray) -> np.ndarray:
-        return (world.is_free(xy[:, 0], xy[:, 1]) & (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax)
-                & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax))
-
-    report = translate_dataset(dataset, out, build.translations, step=build.step, keep=inside, overwrite=True)
+    report = translate_dataset(dataset, out, build.translations, step=build.step,
+                               keep=lambda xy: world.is_mapped_free(xy[:, 0], xy[:, 1]), overwrite=True)
     log.info("virtual translations: %d survey images -> %d map images (%d fell back to the survey view)",
              report.rows_in, report.rows_out, report.fallbacks)
     return Dataset.open(out)

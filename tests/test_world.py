@@ -79,6 +79,17 @@ def test_is_free_blocks_furniture_and_walls(office: World) -> None:
     assert office.is_free(4.0, 1.25, 0.25)
 
 
+def test_is_mapped_free_is_free_floor_inside_the_mapped_area(office: World) -> None:
+    """Where a map's view positions may lie: free as mapped and inside the mapped area, its edges
+    included; free floor outside the mapped area and furniture inside it are not."""
+    desk = next(b for b in office.geometry().boxes if b.owner == "desk_s1")
+    xmin, xmax, ymin, ymax = office.mapped_area
+    x = np.array([4.0, xmin, desk.cx, xmax + 0.3])
+    y = np.array([1.25, ymin, desk.cy, 1.25])
+    assert office.is_free(x, y).tolist() == [True, True, False, True]  # the last: free floor beyond the area
+    assert office.is_mapped_free(x, y).tolist() == [True, True, False, False]
+
+
 def test_grid_poses_order_and_headings(office: World) -> None:
     poses = grid_poses(office, 0.75, math.radians(15))
     assert poses.shape == (11 * 4 * 24, 3)

@@ -398,6 +398,14 @@ class World:
             free &= np.hypot(dx, dy) > radius
         return free
 
+    def is_mapped_free(self, x: Any, y: Any) -> np.ndarray:
+        """True where (x, y) is free as mapped (:meth:`is_free`, no scene changes) and inside the
+        :attr:`mapped_area` (its edges included): where a map's view positions may lie.
+        Vectorized over arrays."""
+        px, py = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        xmin, xmax, ymin, ymax = self.mapped_area
+        return self.is_free(px, py) & (px >= xmin) & (px <= xmax) & (py >= ymin) & (py <= ymax)
+
     # -- plotting ---------------------------------------------------------------------
     def floor_plan(self, scene_changes: tuple[str, ...] | list[str] = ()) -> dict[str, Any]:
         """Floor plan for plots: ``walls`` (M, 2, 2) segments, ``boxes`` list of (4, 2)

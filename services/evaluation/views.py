@@ -324,18 +324,14 @@ def build_sim_maps(
     if translations > 1:
         greys, disps = render_frames(replace(spec, disparity=True, preprocess=()), poses, workers=workers,
                                      progress=progress)
-        xmin, xmax, ymin, ymax = w.mapped_area
-
-        def inside(xy: np.ndarray) -> np.ndarray:
-            return (w.is_free(xy[:, 0], xy[:, 1]) & (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax)
-                    & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax))
 
         def vectors_of(im: np.ndarray) -> np.ndarray:  # every preprocessing's vector, side by side
             return np.concatenate([to_vector(preprocess(as_uint8(im), pre), size) for pre in missing])
 
         # each view warped once, whatever the number of preprocessings
         moved = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m, step, translations,
-                                 keep=inside, transform=vectors_of)
+                                 keep=lambda xy: w.is_mapped_free(xy[:, 0], xy[:, 1]),
+                                 transform=vectors_of)
         poses = moved.poses
         vectors = dict(zip(missing, np.split(moved.images, len(missing), axis=1), strict=True))
         if disparity:  # the moved disparity maps are already at the working size
