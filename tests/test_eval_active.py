@@ -57,8 +57,10 @@ def test_json_has_the_contract_keys(tiny_run: tuple[dict, object]) -> None:
             for s in ("entropy", "random", "sweep"):
                 assert s not in b or len(b[s]) == 3
     for diag in res["diagnostics"].values():
-        assert all(0.0 <= v <= 1.0 for v in diag.values() if isinstance(v, float))
+        assert all(0.0 <= v <= 1.0 for k, v in diag.items()
+                   if isinstance(v, float) and k != "j_neighbours_distinct_positions")
         assert "truth_cell_among_j_nearest" in diag and "initial_particle_in_truth_cell" in diag
+        assert 1.0 <= diag["j_neighbours_distinct_positions"] <= res["setup"]["j"]
     # every strategy starts from the same first image and particles: identical at 0 movements
     first = {s: (r["mean_error_m"][0], r["success"][0]) for s, r in res["strategies"].items()}
     assert len(set(first.values())) == 1

@@ -32,21 +32,25 @@ def feature_diagnostics(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarra
     """How well single test views match the map: over all test views, the fraction whose
     truth map cell (nearest grid pose to the camera pose, grid units) is the nearest map entry in
     feature space, and is among the J nearest; the fraction of the J neighbours within one
-    grid step (position and heading) of the camera pose."""
+    grid step (position and heading) of the camera pose; the mean number of distinct grid
+    positions the J neighbours' cells fall on (how many places one view's mixture spreads over)."""
     model = NearestNeighbourSensorModel(entries, map_features, setup.sensor)
     cams = np.repeat(truths[:, None, :], pans.size, axis=1)
     cams[:, :, 2] = wrap_angle(cams[:, :, 2] + pans[None, :])
     cams = cams.reshape(-1, 3)
-    cell = nearest_map_index(cams, grid, setup.step, math.radians(setup.heading_step_deg))
+    cell = nearest_map_index(cams, grid, setup.judged_step, math.radians(setup.heading_step_deg))
     idx, _ = model.neighbours(feats.reshape(cams.shape[0], -1))
     # the grid cells of the neighbours only (all the entries' against the grid: N x N distances)
     idx_cell = nearest_map_index(entries[idx.ravel()], grid, setup.judged_step,
                                  math.radians(setup.heading_step_deg)).reshape(idx.shape)
+    position_of = np.unique(np.round(grid[:, :2], 6), axis=0, return_inverse=True)[1].reshape(-1)
     near = (np.hypot(entries[idx, 0] - cams[:, None, 0], entries[idx, 1] - cams[:, None, 1]) <= setup.judged_step * 1.05) & (
         np.abs(wrap_angle(entries[idx, 2] - cams[:, None, 2])) <= math.radians(setup.heading_step_deg) * 1.05)
     return {
         "truth_cell_is_nearest_in_features": float(np.mean(idx_cell[:, 0] == cell)),
         "truth_cell_among_j_nearest": float(np.mean(np.any(idx_cell == cell[:, None], axis=1))),
+        "j_neighbours_distinct_positions": float(np.mean(1 + np.sum(np.diff(np.sort(position_of[idx_cell], axis=1),
+                                                                            axis=1) != 0, axis=1))),
         "j_neighbours_within_one_grid_step": float(near.mean()),
     }
 
