@@ -11,8 +11,9 @@ Only the disparity a robot's survey has is used, never a ``depth`` column (dense
 in simulation alone). Rows without disparity keep their own view at every lattice position
 (the map stays a product grid of positions x headings).
 
-The writer journals every row (``DatasetWriter(journal=True)``), each with its source row and
-lattice offset: a translation killed at any point continues where it stopped when run again.
+The writer journals every row (``DatasetWriter(journal=True)``), each with its source row,
+lattice offset and its source's fallback count: a translation killed at any point continues
+where it stopped when run again, without reading or warping the sources already complete.
 
 Usage::
 
@@ -95,11 +96,16 @@ def translate_dataset(
         "conditions": [],
     })
     n = len(dataset)
-    fallbacks = 0
     with DatasetWriter(out, meta, overwrite=overwrite, journal=True) as writer:
         done = {(int(e.get("source", -1)), int(e.get("offset", -1))) for e in writer.extras}
         resumed = len(writer)
-        for i in range(n):
+        # rows are written in source order: every source before the last one journalled is complete
+        first = max((src for src, _ in done), default=0)
+        fallbacks = sum(int(e.get("fallbacks", 0)) for e in writer.extras
+                        if e.get("offset") == 0 and int(e.get("source", -1)) < first)
+        if progress and first:
+            progress(first, n)
+        for i in range(first, n):
             grey = dataset.image(i)
             disp = dataset.disparity(i)
             if disp is None:
@@ -111,7 +117,8 @@ def translate_dataset(
             for k, (image, d, pose) in enumerate(zip(moved.images, moved.disparities, moved.poses, strict=True)):
                 if (i, k) in done:
                     continue
-                writer.add(as_uint8(image), pose, condition=cond, disparity=d, extra={"source": i, "offset": k})
+                writer.add(as_uint8(image), pose, condition=cond, disparity=d,
+                           extra={"source": i, "offset": k, "fallbacks": moved.fallbacks})
             if progress:
                 progress(i + 1, n)
         rows_out = len(writer)

@@ -85,7 +85,7 @@ def test_an_interrupted_translation_continues_where_it_stopped(survey: Path, tmp
         translate_dataset(src, tmp_path / "part", refinement=3, progress=stop_after_two)
     assert not (tmp_path / "part" / "dataset.json").exists() and (tmp_path / "part" / JOURNAL_FILE).is_file()
     again = translate_dataset(src, tmp_path / "part", refinement=3)
-    assert again.resumed == 18 and again.rows_out == whole.rows_out
+    assert again.resumed == 18 and again.rows_out == whole.rows_out and again.fallbacks == whole.fallbacks
     a, b = Dataset.open(tmp_path / "whole"), Dataset.open(tmp_path / "part")
     assert np.array_equal(a.poses, b.poses)
     assert all(np.array_equal(a.image(k), b.image(k)) for k in range(0, len(a), 5))
