@@ -422,6 +422,7 @@ def ensure_sim_map(
         if amap is not None:
             return amap, False
         survey_dir = map_path.with_name(f".{map_path.stem}.survey")
+        translated_dir = survey_dir.with_name(f"{survey_dir.name}.t{build.translations}")
         t0 = time.monotonic()
         log.info(
             "building the simulated map once: survey of %s under %s light, every %g m and %g deg, "
@@ -441,8 +442,7 @@ def ensure_sim_map(
             channels = ("intensity", "disparity") if build.disparity else ("intensity",)
             dataset = Dataset.open(survey_dir)
             if build.translations > 1:
-                dataset = _translated(world, dataset, survey_dir.with_name(survey_dir.name + f".t{build.translations}"),
-                                      build)
+                dataset = _translated(world, dataset, translated_dir, build)
             amap = build_map(
                 dataset, n_features=build.features, preprocess=build.preprocess,
                 size=size, channels=channels, seed=seed, disparity_features=build.disparity_features,
@@ -456,6 +456,6 @@ def ensure_sim_map(
             os.replace(tmp, side)
         finally:
             shutil.rmtree(survey_dir, ignore_errors=True)
-            shutil.rmtree(survey_dir.with_name(survey_dir.name + f".t{build.translations}"), ignore_errors=True)
+            shutil.rmtree(translated_dir, ignore_errors=True)
         log.info("simulated map built: %d map entries in %.1f s -> %s", len(amap), time.monotonic() - t0, map_path)
         return amap, True
