@@ -62,6 +62,17 @@ class TranslationReport:
     resumed: int
 
 
+def _resume_state(extras: list[dict]) -> tuple[set[tuple[int, int]], int, int]:
+    """From an interrupted run's journalled rows (their ``extra``): the (source, offset) pairs
+    written, the first source to warp again (rows are written in source order, so every source
+    before the last one journalled is complete) and the fallbacks of the complete sources."""
+    done = {(int(e.get("source", -1)), int(e.get("offset", -1))) for e in extras}
+    first = max((src for src, _ in done), default=0)
+    fallbacks = sum(int(e.get("fallbacks", 0)) for e in extras
+                    if e.get("offset") == 0 and int(e.get("source", -1)) < first)
+    return done, first, fallbacks
+
+
 def translate_dataset(
     dataset: Dataset,
     out: Path | str,
@@ -97,12 +108,8 @@ def translate_dataset(
     })
     n = len(dataset)
     with DatasetWriter(out, meta, overwrite=overwrite, journal=True) as writer:
-        done = {(int(e.get("source", -1)), int(e.get("offset", -1))) for e in writer.extras}
+        done, first, fallbacks = _resume_state(writer.extras)
         resumed = len(writer)
-        # rows are written in source order: every source before the last one journalled is complete
-        first = max((src for src, _ in done), default=0)
-        fallbacks = sum(int(e.get("fallbacks", 0)) for e in writer.extras
-                        if e.get("offset") == 0 and int(e.get("source", -1)) < first)
         if progress and first:
             progress(first, n)
         for i in range(first, n):
