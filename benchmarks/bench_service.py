@@ -18,7 +18,8 @@ object:
   share for the simulator (it renders the camera, so it is not part of the daemon's cost);
 - ``state_changes_per_min``: poses whose state differs from the previous pose's, per minute
   from the window's first to its last pose (``services.evaluation.honesty``, as ``eval
-  tracking`` counts them), and ``tracking_share``: the share of the window's poses in state ``tracking``.
+  tracking`` counts them), and ``tracking_share``: the share of the window's poses in state ``tracking``
+  (each run's ``state_shares``: the share of every state);
 
 With ``--repeat R`` the run is repeated and the figures are medians (all runs are listed).
 
@@ -76,9 +77,12 @@ def _mem_mb(pid: int) -> tuple[float, float]:
 
 def _config(args: argparse.Namespace, tmp: Path, pub: str, rep: str) -> str:
     dfeat = getattr(args, "disparity_features", None)
+    disparity = getattr(args, "disparity", False)
+    translations = getattr(args, "translations", 1) if disparity else 1  # they need the disparity
     map_path = Path(args.map_cache).expanduser() / (
         f"office-tube-75cm-15deg-{args.features}f-v{args.virtual_headings}-{args.width}x{args.height}"
-        + ("-disparity" + (f"-d{dfeat}f" if dfeat else "") if getattr(args, "disparity", False) else "") + ".npz"
+        + ("-disparity" + (f"-d{dfeat}f" if dfeat else "") if disparity else "")
+        + (f"-t{translations}" if translations > 1 else "") + ".npz"
     )
     map_section = f"""[map]
 path = "{map_path}"
@@ -91,7 +95,8 @@ height = {args.height}
 features = {args.features}
 {f"disparity_features = {dfeat}" if dfeat else ""}
 virtual_headings = {args.virtual_headings}
-disparity = {"true" if getattr(args, "disparity", False) else "false"}"""
+disparity = {"true" if disparity else "false"}
+translations = {translations}"""
     if getattr(args, "map", None):  # a given map file (e.g. a synthetic one of benchmarks/bench_scale.py)
         map_section = f"""[map]
 path = "{Path(args.map).expanduser()}"
@@ -234,6 +239,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         "final_state": status1["state"] if status1 else None,
         "state_changes_per_min": round(state_changes_per_min([w[0] for w in window], states), 2),
         "tracking_share": round(states.count("tracking") / len(states), 3) if states else None,
+        "state_shares": {st: round(states.count(st) / len(states), 3) for st in sorted(set(states))},
         "daemon": {
             "rss_mb": round(rss, 1),
             "peak_rss_mb": round(hwm, 1),
@@ -270,6 +276,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="the map's intensity features (default config/sim.toml's, %(default)s)")
     p.add_argument("--disparity-features", type=int, default=sim_build.get("disparity_features"),
                    help="the disparity channel's features (default config/sim.toml's, %(default)s)")
+    p.add_argument("--translations", type=int, default=sim_build.get("translations", 1),
+                   help="the map's views between the survey positions, every 0.75 m / m (default config/sim.toml's, "
+                   "%(default)s; 1: the survey positions alone; ignored with --no-disparity)")
     p.add_argument("--virtual-headings", type=int, default=5,
                    help="map entries per survey image, as config/sim.toml (default %(default)s; 1: images alone)")
     p.add_argument("--map", default=None,
@@ -302,7 +311,8 @@ def main(argv: list[str] | None = None) -> int:
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
                    "particles": args.particles, "active_vision": args.active_vision, "state_hold": args.state_hold,
-                   "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat},
+                   "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat,
+                   "disparity": args.disparity, "translations": args.translations if args.disparity else 1},
         "pose_rate_hz": med(["pose_rate_hz"]),
         "frame_rate_hz": med(["frame_rate_hz"]),
         "latency_ms": {"p50": med(["latency_ms", "p50"]), "p99": med(["latency_ms", "p99"])},

@@ -1042,6 +1042,7 @@ def build_disparity_channel(
     max_iter: int = DISPARITY_EM_MAX_ITER,
     virtual: VirtualHeadings | None = None,
     workers: int | None = None,
+    memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB,
 ) -> ChannelMap:
     """The disparity channel (section 5): sparse disparity per image (the ``disparity``
     column, or ``depth`` by f*B/Z, or inverse depth without a baseline: see
@@ -1052,7 +1053,46 @@ def build_disparity_channel(
     X = _disparity_rows(dataset, (w, h), min_valid_fraction, progress, workers)
     return disparity_channel_from_vectors(X, (w, h), n_features, units=units, source=source,
                                           min_valid_fraction=min_valid_fraction, seed=seed, max_iter=max_iter,
-                                          virtual=virtual)
+                                          virtual=virtual, memory_budget_mb=memory_budget_mb)
+
+
+#: The disparity EM's memory per value of the rows it fits, in float32 copies: the rows
+#: themselves, the EM's data with 0 where missing and its mask, and the temporaries of its
+#: steps (measured on the office's translated map: docs/scale.md, "The disparity channel
+#: within the memory budget").
+DISPARITY_FIT_COPIES = 6.0
+
+
+def disparity_fit_rows(n_rows: int, row_values: int, memory_budget_mb: float, n_features: int) -> int:
+    """How many of ``n_rows`` source rows, each ``row_values`` float32 values of the EM's data
+    (after virtual headings), the disparity EM fits within ``memory_budget_mb``
+    (:data:`DISPARITY_FIT_COPIES` copies of them): all if they fit, never fewer than
+    ``n_features + 1``."""
+    per_row_mb = row_values * 4 * DISPARITY_FIT_COPIES / 2**20
+    return int(min(n_rows, max(memory_budget_mb // per_row_mb, n_features + 1)))
+
+
+def _disparity_views(X: np.ndarray, size: tuple[int, int], virtual: VirtualHeadings | None) -> np.ndarray:
+    """The disparity rows ``X`` as the map's entries: each row's V virtual headings with ``virtual``."""
+    if virtual is None:
+        return X
+    return augment_vectors(X, size, virtual.K, virtual.offsets, virtual.margin, disparity=True)
+
+
+def _project_disparity(
+    model: Any, X: np.ndarray, size: tuple[int, int], virtual: VirtualHeadings | None
+) -> tuple[np.ndarray, int]:
+    """Features (N*V, d) float32 of the entries of the disparity rows ``X`` (their V virtual
+    headings with ``virtual``), made a block of rows at a time; and the number of valid values."""
+    V = 1 if virtual is None else len(virtual.offsets)
+    Y = np.empty((X.shape[0] * V, model.n_components), dtype=np.float32)
+    valid = 0
+    block = max(1, 2048 // V)
+    for lo in range(0, X.shape[0], block):
+        rows = _disparity_views(X[lo : lo + block], size, virtual)
+        Y[lo * V : lo * V + rows.shape[0]] = model.project(rows)
+        valid += int(np.isfinite(rows).sum())
+    return Y, valid
 
 
 def disparity_channel_from_vectors(
@@ -1066,20 +1106,33 @@ def disparity_channel_from_vectors(
     seed: int = 0,
     max_iter: int = DISPARITY_EM_MAX_ITER,
     virtual: VirtualHeadings | None = None,
+    memory_budget_mb: float = DEFAULT_MEMORY_BUDGET_MB,
 ) -> ChannelMap:
     """The disparity channel from working-size sparse vectors ``X`` (N, w*h), NaN = no value
     (``min_valid_fraction`` is the one they were area-averaged with, kept for the queries;
     ``source`` says where the disparity came from, :func:`disparity_source`): with
     ``virtual`` each image first becomes its V turned views; then PCA with missing data by
     EM (:func:`lino_loc.pca_missing.fit_pca_missing`) and every row's features from its valid
-    pixels alone."""
+    pixels alone.
+
+    The EM fits every row when they fit ``memory_budget_mb`` (:func:`disparity_fit_rows`),
+    else a random sample of the rows (``seed``; each with all its virtual headings) as large
+    as the budget allows: an estimate of the same model from fewer samples. Every row is
+    then projected, a block of rows at a time. ``fit_rows`` in the channel's parameters says
+    how many of the map's entries the model was fitted on."""
     from lino_loc.pca_missing import fit_pca_missing
 
     w, h = int(size[0]), int(size[1])
-    if virtual is not None:
-        X = augment_vectors(X, (w, h), virtual.K, virtual.offsets, virtual.margin, disparity=True)
-    model = fit_pca_missing(X, n_features, seed=seed, max_iter=max_iter, dtype=np.float32)
-    Y = np.asarray(model.project(X), dtype=np.float32)
+    V = 1 if virtual is None else len(virtual.offsets)
+    n = X.shape[0]
+    row_values = V * (w if virtual is None else w - 2 * virtual.margin) * h
+    k = disparity_fit_rows(n, row_values, memory_budget_mb, n_features)
+    fit_idx = slice(None) if k >= n else np.sort(np.random.default_rng(seed).choice(n, k, replace=False))
+    if k < n:
+        log.info("map build: the disparity EM fits %d of %d images (memory budget %.0f MiB)", k, n, memory_budget_mb)
+    model = fit_pca_missing(_disparity_views(X[fit_idx], (w, h), virtual), n_features, seed=seed,
+                            max_iter=max_iter, dtype=np.float32)
+    Y, valid = _project_disparity(model, X, (w, h), virtual)
     return ChannelMap(
         name="disparity",
         preprocess="none",
@@ -1092,7 +1145,8 @@ def disparity_channel_from_vectors(
             "units": units,
             "source": source,
             "seed": seed,
-            "valid_fraction": float(np.isfinite(X).mean()),
+            "valid_fraction": valid / max(n * row_values, 1),
+            "fit_rows": k * V,
             **(virtual.params() if virtual else {}),
         },
     )
@@ -1148,8 +1202,8 @@ def build_map(
                                      scratch_dir=scratch_dir, chunk_rows=chunk_rows)
     chans: dict[str, ChannelMap] = {"intensity": intensity}
     if "disparity" in channels:
-        chans["disparity"] = build_disparity_channel(ds, disparity_features or n_features, (w, h), progress,
-                                                     seed=seed, virtual=virtual, workers=workers)
+        chans["disparity"] = build_disparity_channel(ds, disparity_features or n_features, (w, h), progress, seed=seed,
+                                                     virtual=virtual, workers=workers, memory_budget_mb=memory_budget_mb)
     return AppearanceMap(
         poses=ds.poses.copy() if virtual is None else augment_poses(ds.poses, virtual.offsets),
         channels=chans,

@@ -261,7 +261,7 @@ class MissingDataPCA:
         Samples with no valid pixel get zeros; with ``return_valid`` a boolean array (or
         bool for one sample) says which samples had at least one valid pixel.
         """
-        a = np.asarray(X, dtype=np.float64)
+        a = np.asarray(X)
         single = a.ndim == 1
         if single:
             a = a[None, :]
@@ -269,6 +269,19 @@ class MissingDataPCA:
             raise LinoLocError(
                 f"sample shape {np.shape(X)} does not match the model's {self.n_features_in} pixels"
             )
+        if a.shape[0] > _PROJECT_BLOCK:  # by blocks: the float64 work arrays stay bounded
+            parts = [self._project_rows(a[lo : lo + _PROJECT_BLOCK])
+                     for lo in range(0, a.shape[0], _PROJECT_BLOCK)]
+            Y, has = np.concatenate([y for y, _ in parts]), np.concatenate([h for _, h in parts])
+        else:
+            Y, has = self._project_rows(a)
+        if single:
+            return (Y[0], bool(has[0])) if return_valid else Y[0]
+        return (Y, has) if return_valid else Y
+
+    def _project_rows(self, X: NDArray) -> tuple[F64, NDArray[np.bool_]]:
+        """:meth:`project` of (N, D) samples: their features and which had a valid pixel."""
+        a = np.asarray(X, dtype=np.float64)
         mask = np.isfinite(a)
         design, to_feat = self._projection_factors()
         rowcount = mask.sum(1).astype(np.float64)
@@ -291,9 +304,7 @@ class MissingDataPCA:
         Y = Ez @ to_feat  # (N, d): U^T W E[z]
         has = rowcount > 0
         Y[~has] = 0.0
-        if single:
-            return (Y[0], bool(has[0])) if return_valid else Y[0]
-        return (Y, has) if return_valid else Y
+        return Y, has
 
     @classmethod
     def from_projection(
@@ -368,6 +379,7 @@ DEFAULT_PRIOR_WEIGHT = 0.1
 #: half the number of parameters, D (d + 1) / 2 nats: tens of thousands for a map).
 DEFAULT_TOL = 5e-6
 
+_PROJECT_BLOCK = 2048  # samples per block of :meth:`MissingDataPCA.project` (3 float64 (B, D) work arrays)
 _SOLVE_BLOCK = 512  # pixels per batch of M-step solves (bounds the (D, d+1, d+1) temporaries)
 
 

@@ -361,10 +361,10 @@ SIM_OVERRIDES: dict[str, Any] = {
         "odometry": {"kind": "serial", "port": AUTO},
     },
     "map": {
-        "path": "~/.cache/lino-loc/maps/office-tube-75cm-15deg-20f-d5-disparity.npz",
+        "path": "~/.cache/lino-loc/maps/office-tube-75cm-15deg-20f-d5-disparity-t3.npz",
         "build": {"world": "office", "lighting": "tube", "step": 0.75, "heading_step_deg": 15.0,
                   "features": 20, "disparity_features": 5, "preprocess": "none", "virtual_headings": 5,
-                  "disparity": True},
+                  "disparity": True, "translations": 3},
     },
     "localizer": {"filter": {"n_particles": 1000}},
     "persistence": {"state_file": "~/.local/state/lino-loc/sim-state.json"},

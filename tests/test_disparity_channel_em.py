@@ -44,3 +44,51 @@ def test_entries_with_no_valid_pixel_are_marked_unobserved() -> None:
     assert empty[[3, 50, 51]].all()
     np.testing.assert_array_equal(rows, ~empty)
     np.testing.assert_array_equal(ch.features[[3, 50, 51]], 0.0)  # the prior mean: no observation
+
+
+def test_the_fit_takes_every_row_within_the_budget_else_as_many_as_it_allows() -> None:
+    from lino_loc.appearance_map import DISPARITY_FIT_COPIES, disparity_fit_rows
+
+    per_row_mb = 1000 * 4 * DISPARITY_FIT_COPIES / 2**20
+    assert disparity_fit_rows(500, 1000, 500 * per_row_mb, 5) == 500  # exactly fits: all
+    assert disparity_fit_rows(500, 1000, 120.5 * per_row_mb, 5) == 120  # as many whole rows as fit
+    assert disparity_fit_rows(500, 1000, 0.001, 5) == 6  # never fewer than n_features + 1
+    assert disparity_fit_rows(4, 1000, 0.001, 5) == 4  # nor more than there are
+
+
+def _rank_four(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of 16 x 12 pixels on four known smooth directions (scales 4, 3, 2, 1.5 about a mean
+    of 10) plus noise of 0.3, half their pixels missing in 4 x 4 blocks; and an orthonormal
+    basis (192, 4) of those directions."""
+    rng = np.random.default_rng(seed)
+    w, h = 16, 12
+    yy, xx = np.mgrid[0:h, 0:w] / max(w, h)
+    Q = np.linalg.qr(np.stack([xx, yy, xx * yy, np.cos(2 * yy)]).reshape(4, -1).T)[0]
+    X = 10.0 + (rng.normal(size=(n, 4)) * [4.0, 3.0, 2.0, 1.5]) @ (Q.T * np.sqrt(w * h))
+    X += rng.normal(scale=0.3, size=X.shape)
+    blocks = rng.random((n, h // 4, w // 4)) < 0.5
+    X[np.repeat(np.repeat(blocks, 4, axis=1), 4, axis=2).reshape(n, -1)] = np.nan
+    return X.astype(np.float32), Q
+
+
+def test_over_the_budget_a_sample_of_the_rows_finds_the_subspace_and_every_row_gets_its_features() -> None:
+    from scipy.linalg import subspace_angles
+
+    from lino_loc.appearance_map import DISPARITY_FIT_COPIES
+
+    X, truth = _rank_four(1200)
+    row_mb = X.shape[1] * 4 * DISPARITY_FIT_COPIES / 2**20
+    full = disparity_channel_from_vectors(X, (16, 12), 4)
+    part = disparity_channel_from_vectors(X, (16, 12), 4, memory_budget_mb=400 * row_mb)
+    assert full.params["fit_rows"] == 1200 and part.params["fit_rows"] == 400
+    assert full.pca is not None and part.pca is not None
+
+    def off_truth(ch: object) -> float:  # largest principal angle to the true directions, degrees
+        return float(np.degrees(subspace_angles(ch.pca.components.T.astype(float), truth).max()))  # type: ignore[attr-defined]
+
+    assert off_truth(full) < 3.0 and off_truth(part) < 6.0  # a third of the rows, a little less sharp
+    assert part.features.shape == (1200, 4)
+    np.testing.assert_allclose(part.features, part.pca.project(X), rtol=1e-5, atol=1e-4)  # every row
+    assert part.params["valid_fraction"] == full.params["valid_fraction"] == float(np.isfinite(X).mean())
+    again = disparity_channel_from_vectors(X, (16, 12), 4, memory_budget_mb=400 * row_mb)
+    np.testing.assert_array_equal(again.features, part.features)  # the sample is seeded

@@ -49,8 +49,9 @@ def test_json_has_the_contract_keys(tiny_run: tuple[dict, object]) -> None:
     assert res["scene_changes"]["names"] == ["boxes"]
     assert set(res["scene_changes"]["chosen_view_change"]) == {"entropy", "random", "sweep"}
     assert all(v >= 0.0 for v in res["scene_changes"]["chosen_view_change"].values())
-    # the default map: every image also turned by -6, -3, +3, +6 deg (lino_loc.virtual_views)
-    assert res["map_entries"] == 5 * res["map_images"]
+    # the default map: every survey image also seen from its cell's lattice (translations = 3: up to
+    # 9 positions, those on free floor), every view also turned by -6, -3, +3, +6 deg
+    assert res["map_entries"] % 5 == 0 and res["map_images"] < res["map_entries"] // 5 <= 9 * res["map_images"]
     for bands in (res["success_by_grid_distance"], res["scene_changes"]["success_by_grid_distance"]):
         assert sum(b["positions"] for b in bands.values()) == res["positions"]
         for b in bands.values():
@@ -142,7 +143,8 @@ def test_test_positions_are_free_and_off_the_grid(world_name: str) -> None:
 
 
 def test_plain_map_has_one_entry_per_image(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["eval", "active", "--json", *TINY, "--virtual-headings", "1", "--movements", "1"]) == 0
+    assert main(["eval", "active", "--json", *TINY, "--virtual-headings", "1", "--translations", "1",
+                 "--movements", "1"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["map_entries"] == res["map_images"]
 
@@ -203,6 +205,7 @@ def test_product_defaults_are_the_commands_defaults() -> None:
     assert (d["virtual_headings"], d["features"], d["j"], d["particles"], d["n_actions"]) == (5, 20, 10, 150, 22)
     # the simulated service's map (config/sim.toml): both channels, 5 disparity features
     assert d["channels"] == ["intensity", "disparity"] and d["disparity_features"] == 5
+    assert d["translations"] == 3  # and the views between the survey positions, as config/sim.toml
     assert d["filter"] == {"global_proposal_fraction": 0.5}
     assert d["motion"] == {"min_sigma_xy": 0.01, "min_sigma_theta": pytest.approx(math.radians(0.5))}
     assert d["pan_reliability"]["enabled"] is True  # lino_loc.pan_reliability, on for the product
@@ -219,6 +222,21 @@ def test_the_kernel_width_option(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "active", *TINY, "--sigma-xy", "0"]) == 2
     err = capsys.readouterr().err
     assert "--sigma-xy" in err and "Traceback" not in err
+
+
+def test_the_map_memory_budget_option(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--map-memory-budget`` reaches the setup and its report (absent by default, so default
+    reports stay as they were); a budget that is not positive is a one-line error."""
+    from services.cli import build_parser
+    from services.evaluation.commands.active_cmd import _setup
+
+    args = build_parser().parse_args(["eval", "active", "--map-memory-budget", "2048"])
+    setup = _setup(args, ())
+    assert setup.map_memory_budget_mb == 2048.0 and setup.report()["map_memory_budget_mb"] == 2048.0
+    assert "map_memory_budget_mb" not in product_defaults().report()
+    assert main(["eval", "active", *TINY, "--map-memory-budget", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--map-memory-budget" in err and "Traceback" not in err
 
 
 def test_paper_setup_is_section_6_1() -> None:

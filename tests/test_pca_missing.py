@@ -437,3 +437,19 @@ def test_the_batched_posterior_is_the_per_sample_one():
         assert np.allclose(Ez[i], np.linalg.solve(M, W[o].T @ (x[i, o] - mu[o])), atol=1e-12)
         want = 0.0 if not o.any() else multivariate_normal(mu[o], W[o] @ W[o].T + s2 * np.eye(o.sum())).logpdf(x[i, o])
         assert ll[i] == pytest.approx(want, rel=1e-10, abs=1e-10)
+
+
+def test_projection_by_blocks_is_the_projection_of_all_rows(monkeypatch):
+    import lino_loc.pca_missing as pm
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(300, 40)) @ rng.normal(size=(40, 40))
+    X[rng.random(X.shape) < 0.4] = np.nan
+    X[7] = np.nan  # a row with nothing
+    model = pm.fit_pca_missing(X, 4, seed=0)
+    whole, has = model.project(X, return_valid=True)
+    monkeypatch.setattr(pm, "_PROJECT_BLOCK", 64)
+    blocks, has_b = model.project(X, return_valid=True)
+    np.testing.assert_allclose(blocks, whole, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(has_b, has)
+    assert not has[7] and np.all(whole[7] == 0.0)

@@ -20,7 +20,9 @@ more there are.
 a Dask cluster (:mod:`lino_loc.pca_dask`): a LocalCluster of ``--workers`` processes, or the
 running cluster at ``--scheduler`` (:mod:`services.dask_cluster`); needs the ``cluster``
 extra. The local engine streams a data matrix larger than ``--memory-budget`` MiB through a
-scratch file in ``--scratch`` (default: the output map's folder).
+scratch file in ``--scratch`` (default: the output map's folder). The disparity channel's EM
+fits as many views as its working set allows within the same budget, chosen at random, and
+gives every view its features (:func:`lino_loc.appearance_map.disparity_fit_rows`).
 """
 
 from __future__ import annotations
@@ -267,7 +269,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="images per Dask task, or rows per chunk when the local build streams (default: 64 MiB of rows)")
     p.add_argument("--memory-budget", type=float, default=DEFAULT_MEMORY_BUDGET_MB, metavar="MB",
                    help="local engine: a larger data matrix (images x pixels float32, MiB) is streamed from a "
-                   "scratch file in chunks (default %(default)g)")
+                   "scratch file in chunks; the disparity EM is fitted on a random sample of the views that fits "
+                   "it (default %(default)g)")
     p.add_argument("--scratch", default=None, metavar="DIR",
                    help="folder of the streamed build's scratch file (default: the --out map's folder)")
     p.add_argument("--json", action="store_true", help="print one JSON summary object on stdout")

@@ -112,6 +112,7 @@ def render_map(
                           disparity="disparity" in setup.channels,
                           disparity_features=setup.disparity_features,
                           translations=setup.translations,
+                          memory_budget_mb=setup.map_memory_budget_mb,
                           )[setup.preprocess]
     ch = amap.channels["intensity"]
     dch = amap.channels.get("disparity")

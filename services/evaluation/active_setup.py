@@ -81,6 +81,7 @@ class ActiveSetup:
     criterion_step: float | None = None  # the survey spacing success is judged on (None: ``step``)
     translations: int = 1  # odd m > 1: the map also holds virtual translations every step / m
     decisions: tuple[str, ...] = ()  # services.evaluation.decision_rules reported beside the estimate
+    map_memory_budget_mb: float | None = None  # the map build's memory budget (None: the map builder's default)
     sweep_stride: int = 7
     width: int = 320
     height: int = 240
@@ -146,6 +147,8 @@ class ActiveSetup:
             out["criterion_step"] = self.criterion_step
         if self.translations > 1:  # reported only when set
             out["translations"] = self.translations
+        if self.map_memory_budget_mb is not None:  # reported only when set
+            out["map_memory_budget_mb"] = self.map_memory_budget_mb
         if self.decisions:  # reported only when set
             out["decisions"] = list(self.decisions)
         if a.reliability.enabled:  # reported when on (lino_loc.pan_reliability)
@@ -163,7 +166,7 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
     positions, runs, movements, seed, ...), or a method field to override."""
     method: dict[str, Any] = {
         "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 5, "virtual_step_deg": 3.0, "features": 20,
-        "disparity_features": 5, "preprocess": "none", "channels": ("intensity", "disparity"),
+        "disparity_features": 5, "preprocess": "none", "channels": ("intensity", "disparity"), "translations": 3,
         "sensor_model": "nearest_neighbour",
         "sensor": paper_sensor_model(), "interpolation": InterpolationConfig(), "particles": 150, "inject": 0.0,
         "active": paper_active_vision(reliability={"enabled": True}),

@@ -256,6 +256,7 @@ def build_sim_maps(
     min_valid_fraction: float = 0.25,
     disparity_features: int | None = None,
     translations: int = 1,
+    memory_budget_mb: float | None = None,
 ) -> dict[str, AppearanceMap]:
     """Appearance maps (eq. 1) of a simulated survey, one per preprocessing, built in memory.
 
@@ -273,7 +274,8 @@ def build_sim_maps(
     every survey view is also seen from the lattice of spacing ``step / m`` inside its cell by
     virtual translations with its own sparse disparity
     (:func:`lino_loc.virtual_translations.translate_survey`), the disparity channel by moving
-    that sparse disparity itself.
+    that sparse disparity itself. ``memory_budget_mb``: the disparity EM's memory budget
+    (:func:`lino_loc.appearance_map.disparity_fit_rows`; None: the map builder's default).
     """
     import math
 
@@ -301,6 +303,7 @@ def build_sim_maps(
         f"{size[0]}x{size[1]}-s{seed}"
         + (f"-v{virtual_headings}x{virtual_step_deg:g}" if virtual_headings > 1 else "")
         + depth_key + (f"-t{translations}" if translations > 1 else "")
+        + (f"-b{memory_budget_mb:g}" if disparity and memory_budget_mb is not None else "")
         + f"-{w.fingerprint[:10]}-c{code_fingerprint()}.npz"
     )
     out: dict[str, AppearanceMap] = {}
@@ -341,9 +344,10 @@ def build_sim_maps(
     info = CameraInfo(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy, baseline_m=cam.baseline_m)
     virtual = None if virtual_headings <= 1 else virtual_setup(
         info, size, offsets(math.radians(virtual_step_deg), virtual_headings))
+    budget = {} if memory_budget_mb is None else {"memory_budget_mb": memory_budget_mb}
     depth = None if not disparity else disparity_channel_from_vectors(
         vectors["disparity"], size, disparity_features or features, min_valid_fraction=min_valid_fraction, seed=seed,
-        virtual=virtual)
+        virtual=virtual, **budget)
     for pre in missing:
         ch = intensity_channel_from_vectors(vectors[pre], pre, size, features,  # type: ignore[arg-type]
                                             virtual=virtual, seed=seed)

@@ -178,7 +178,10 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
         raise LinoLocError(f"--decisions: unknown rule {unknown[0]!r} (known: {', '.join(DECISIONS)})")
     experiment = dict(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
                       scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal,
-                      criterion_step=args.criterion_step, decisions=decisions)
+                      criterion_step=args.criterion_step, decisions=decisions,
+                      map_memory_budget_mb=args.map_memory_budget)
+    if args.map_memory_budget is not None and not args.map_memory_budget > 0.0:
+        raise LinoLocError(f"--map-memory-budget must be positive (got {args.map_memory_budget})")
     if args.criterion_step is not None and not args.criterion_step > 0.0:
         raise LinoLocError(f"--criterion-step must be positive (got {args.criterion_step})")
     for name, value in (("--positions", args.positions), ("--runs", args.runs), ("--movements", args.movements),
@@ -255,6 +258,10 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
                    help="judge success (section 6.1) on a survey grid of this spacing, metres, and place the "
                    "test positions off it (default: --step); with a denser map (--step 0.375 --criterion-step "
                    "0.75) it measures what views between the survey's poses would give")
+    p.add_argument("--map-memory-budget", type=float, metavar="MB",
+                   help="memory budget of the map build, MiB: a disparity channel whose EM would need more is "
+                   "fitted on a random sample of the views (lino_loc.appearance_map.disparity_fit_rows; default "
+                   "the map builder's)")
     p.add_argument("--decisions", default="", metavar="RULES",
                    help="also judge these final decisions on the same runs, comma-separated: "
                    f"{', '.join(DECISIONS)} (services.evaluation.decision_rules)")
