@@ -898,12 +898,17 @@ Engine = Literal["local", "dask"]
 ENGINES: tuple[str, ...] = ("local", "dask")
 
 
-def data_matrix_mb(n_rows: int, size: tuple[int, int], virtual: VirtualHeadings | None = None) -> float:
-    """MiB of the intensity channel's float32 data matrix for n_rows images at ``size``."""
+def _entry_values(size: tuple[int, int], virtual: VirtualHeadings | None) -> int:
+    """Values of one map entry's vector at ``size`` (cropped by the virtual headings' margin)."""
     w, h = int(size[0]), int(size[1])
-    if virtual is None:
-        return n_rows * w * h * 4 / 2**20
-    return n_rows * len(virtual.offsets) * (w - 2 * virtual.margin) * h * 4 / 2**20
+    return w * h if virtual is None else (w - 2 * virtual.margin) * h
+
+
+def data_matrix_mb(n_rows: int, size: tuple[int, int], virtual: VirtualHeadings | None = None) -> float:
+    """MiB of a channel's float32 data matrix for n_rows images at ``size`` (each image's V
+    virtual headings with ``virtual``)."""
+    V = 1 if virtual is None else len(virtual.offsets)
+    return n_rows * V * _entry_values(size, virtual) * 4 / 2**20
 
 
 def build_intensity_channel(
@@ -1063,13 +1068,12 @@ def build_disparity_channel(
 DISPARITY_FIT_COPIES = 6.0
 
 
-def disparity_fit_rows(n_rows: int, row_values: int, memory_budget_mb: float, n_features: int) -> int:
-    """How many of ``n_rows`` source rows, each ``row_values`` float32 values of the EM's data
-    (after virtual headings), the disparity EM fits within ``memory_budget_mb``
-    (:data:`DISPARITY_FIT_COPIES` copies of them): all if they fit, never fewer than
-    ``n_features + 1``."""
-    per_row_mb = row_values * 4 * DISPARITY_FIT_COPIES / 2**20
-    return int(min(n_rows, max(memory_budget_mb // per_row_mb, n_features + 1)))
+def disparity_fit_rows(n_rows: int, row_mb: float, memory_budget_mb: float, n_features: int) -> int:
+    """How many of ``n_rows`` source rows, each ``row_mb`` MiB of the EM's float32 data (after
+    virtual headings: :func:`data_matrix_mb` of one row), the disparity EM fits within
+    ``memory_budget_mb`` (:data:`DISPARITY_FIT_COPIES` copies of them): all if they fit, never
+    fewer than ``n_features + 1``."""
+    return int(min(n_rows, max(memory_budget_mb // (row_mb * DISPARITY_FIT_COPIES), n_features + 1)))
 
 
 def _disparity_views(X: np.ndarray, size: tuple[int, int], virtual: VirtualHeadings | None) -> np.ndarray:
@@ -1125,8 +1129,7 @@ def disparity_channel_from_vectors(
     w, h = int(size[0]), int(size[1])
     V = 1 if virtual is None else len(virtual.offsets)
     n = X.shape[0]
-    row_values = V * (w if virtual is None else w - 2 * virtual.margin) * h
-    k = disparity_fit_rows(n, row_values, memory_budget_mb, n_features)
+    k = disparity_fit_rows(n, data_matrix_mb(1, (w, h), virtual), memory_budget_mb, n_features)
     fit_idx = slice(None) if k >= n else np.sort(np.random.default_rng(seed).choice(n, k, replace=False))
     if k < n:
         log.info("map build: the disparity EM fits %d of %d images (memory budget %.0f MiB)", k, n, memory_budget_mb)
@@ -1145,7 +1148,7 @@ def disparity_channel_from_vectors(
             "units": units,
             "source": source,
             "seed": seed,
-            "valid_fraction": valid / max(n * row_values, 1),
+            "valid_fraction": valid / max(Y.shape[0] * _entry_values((w, h), virtual), 1),
             "fit_rows": k * V,
             **(virtual.params() if virtual else {}),
         },

@@ -49,11 +49,12 @@ def test_entries_with_no_valid_pixel_are_marked_unobserved() -> None:
 def test_the_fit_takes_every_row_within_the_budget_else_as_many_as_it_allows() -> None:
     from lino_loc.appearance_map import DISPARITY_FIT_COPIES, disparity_fit_rows
 
-    per_row_mb = 1000 * 4 * DISPARITY_FIT_COPIES / 2**20
-    assert disparity_fit_rows(500, 1000, 500 * per_row_mb, 5) == 500  # exactly fits: all
-    assert disparity_fit_rows(500, 1000, 120.5 * per_row_mb, 5) == 120  # as many whole rows as fit
-    assert disparity_fit_rows(500, 1000, 0.001, 5) == 6  # never fewer than n_features + 1
-    assert disparity_fit_rows(4, 1000, 0.001, 5) == 4  # nor more than there are
+    row_mb = 1 / 256  # one row of the EM's data, MiB (binary-exact); its working set is DISPARITY_FIT_COPIES of it
+    per_row_mb = row_mb * DISPARITY_FIT_COPIES
+    assert disparity_fit_rows(500, row_mb, 500 * per_row_mb, 5) == 500  # exactly fits: all
+    assert disparity_fit_rows(500, row_mb, 120.5 * per_row_mb, 5) == 120  # as many whole rows as fit
+    assert disparity_fit_rows(500, row_mb, 0.001, 5) == 6  # never fewer than n_features + 1
+    assert disparity_fit_rows(4, row_mb, 0.001, 5) == 4  # nor more than there are
 
 
 def _rank_four(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
