@@ -40,6 +40,7 @@ from lino_loc.appearance_map import (
     ChannelMap,
     SessionInfo,
     _disparity_rows,
+    _project_disparity,
     _utc_now,
     load_vectors,
     virtual_setup,
@@ -218,9 +219,7 @@ def _extend_disparity(
                                "or depth")
     frac = float(ch.params.get("min_valid_fraction", 0.25) or 0.0)
     X = np.vstack([_disparity_rows(ds, ch.size, frac, progress, workers) for ds in sets])
-    if virtual is not None:
-        X = augment_vectors(X, ch.size, virtual.K, virtual.offsets, virtual.margin, disparity=True)
-    if X.shape[0] != n_new:
-        raise LinoLocError(f"{sets[0].root}: {X.shape[0]} disparity rows for {n_new} image rows")
-    Y = np.asarray(ch.pca.project(X), dtype=np.float32)
+    Y, _ = _project_disparity(ch.pca, X, ch.size, virtual)  # the entries' views a block of rows at a time
+    if Y.shape[0] != n_new:
+        raise LinoLocError(f"{sets[0].root}: {Y.shape[0]} disparity rows for {n_new} image rows")
     return replace(ch, features=np.vstack([np.asarray(ch.features, dtype=np.float32), Y]))

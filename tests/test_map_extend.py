@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import services.cli as cli
-from lino_loc.appearance_map import HEADER_KEY, AppearanceMap, build_map
+from lino_loc.appearance_map import HEADER_KEY, AppearanceMap, build_map, virtual_setup
 from lino_loc.dataset import CameraInfo, Dataset, DatasetMeta, DatasetWriter
 from lino_loc.errors import LinoLocError
 from lino_loc.map_extend import extend_map
@@ -179,3 +179,41 @@ def test_a_map_with_virtual_headings_extends_with_its_headings(tmp_path: Path, b
     np.testing.assert_allclose(new.poses[len(amap) + 1], bulb.poses[0])  # the middle offset is 0
     ch = new.channels["intensity"]
     np.testing.assert_allclose(ch.features[len(amap) + 1], ch.project(bulb.image(0)), atol=1e-3)
+
+
+def test_a_session_gets_its_disparity_features_by_projection_onto_the_channel(tmp_path: Path) -> None:
+    """With a disparity channel and virtual headings, the new rows' sparse disparity is turned,
+    projected onto the channel's model (never refitted), and appended: each new entry's features
+    are the model's projection of that view."""
+    import math
+
+    from lino_loc.appearance_map import _disparity_rows, _disparity_views
+    from lino_loc.virtual_views import offsets
+
+    cam = CAM.model_copy(update={"baseline_m": 0.075})
+
+    def survey(root: Path, xs: np.ndarray, seed: int) -> Dataset:
+        rng = np.random.default_rng(seed)
+        v = np.linspace(0, 1, cam.height)[:, None]
+        with DatasetWriter(root, DatasetMeta(name="synthetic-stereo", camera=cam)) as w:
+            for x in xs:
+                for t in np.radians(np.arange(0, 360, 45)):
+                    disp = 2.0 + np.sin(2 * x + t) + v * np.cos(x - t) + rng.normal(0, 0.05, (cam.height, cam.width))
+                    disp[rng.random(disp.shape) < 0.4] = np.nan  # the matcher's holes
+                    w.add(_scene(float(x), float(t), "tube", rng), (float(x), 0.0, float(t)), condition="tube",
+                          disparity=disp)
+        return Dataset.open(root)
+
+    base = survey(tmp_path / "base", np.arange(0, 2.01, 0.25), 0)
+    turns = offsets(math.radians(3.0), 3)
+    amap = build_map(base, n_features=6, size=SIZE, workers=1, channels=("intensity", "disparity"),
+                     disparity_features=3, virtual_offsets=turns)
+    new = survey(tmp_path / "new", np.array([0.6, 1.4]), 1)
+    out, _ = extend_map(amap, new, refit="never", workers=1)
+    ch, old = out.channels["disparity"], amap.channels["disparity"]
+    n_old = len(old.features)
+    np.testing.assert_array_equal(ch.features[:n_old], old.features)  # the old entries untouched
+    virtual = virtual_setup(cam, SIZE, turns)
+    views = _disparity_views(_disparity_rows(new, SIZE, float(old.params["min_valid_fraction"]), None), SIZE, virtual)
+    assert len(ch.features) == n_old + len(views) == len(out.poses)
+    np.testing.assert_allclose(ch.features[n_old:], old.pca.project(views), rtol=1e-5, atol=1e-5)
