@@ -20,6 +20,9 @@ object:
   from the window's first to its last pose (``services.evaluation.honesty``, as ``eval
   tracking`` counts them), and ``tracking_share``: the share of the window's poses in state ``tracking``
   (each run's ``state_shares``: the share of every state);
+- ``truth``: the poses against the simulator's true pose (its ``truth`` topic): the median
+  position error, the share of poses ``lost`` within 0.5 m of the truth
+  (``false_lost_fraction``) and ``tracking`` more than 1 m off (``confident_wrong_fraction``);
 
 With ``--repeat R`` the run is repeated and the figures are medians (all runs are listed).
 
@@ -123,6 +126,7 @@ port = "auto"
 [localizer.filter]
 n_particles = {args.particles}
 state_hold = {args.state_hold}
+{"" if args.misfit_alpha is None else f"[localizer.filter.view_fit]{chr(10)}misfit_alpha = {args.misfit_alpha}"}
 [localizer.filter.challenge]
 after_misfit = {"true" if args.after_misfit == "on" else "false"}
 [active_vision]
@@ -142,6 +146,8 @@ class _Collector(threading.Thread):
         super().__init__(daemon=True)
         self.endpoint = endpoint
         self.poses: list[tuple[float, float, float, str]] = []  # (rx, stamp, latency_ms, state)
+        self.xy: list[tuple[float, float]] = []  # each pose's position, m
+        self.truth: list[tuple[float, float, float]] = []  # (stamp, x, y) of the simulator's truth
         self.seqs: list[int] = []  # the update number of each pose received
         self.statuses: list[tuple[float, dict[str, Any]]] = []
         self.stop_event = threading.Event()
@@ -151,6 +157,7 @@ class _Collector(threading.Thread):
         s = ctx.socket(zmq.SUB)
         s.setsockopt(zmq.SUBSCRIBE, b"pose")
         s.setsockopt(zmq.SUBSCRIBE, b"status")
+        s.setsockopt(zmq.SUBSCRIBE, b"truth")
         s.connect(self.endpoint)
         while not self.stop_event.is_set():
             if not s.poll(100):
@@ -161,6 +168,9 @@ class _Collector(threading.Thread):
             if topic == b"pose":
                 self.poses.append((rx, m["stamp"], m.get("latency_ms") or float("nan"), str(m.get("state"))))
                 self.seqs.append(int(m["seq"]))
+                self.xy.append((float(m["pose"]["x"]), float(m["pose"]["y"])))
+            elif topic == b"truth":
+                self.truth.append((float(m["stamp"]), float(m["pose"]["x"]), float(m["pose"]["y"])))
             elif topic == b"status":
                 self.statuses.append((rx, m))
         s.close(0)
@@ -214,7 +224,8 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
                 code = proc.wait()
             col.stop_event.set()
             col.join(5)
-    window = [p for p in col.poses if t0 <= p[0] <= t1]
+    idx = [i for i, p in enumerate(col.poses) if t0 <= p[0] <= t1]
+    window = [col.poses[i] for i in idx]
     lat = np.array([w[2] for w in window], dtype=float)
     rx_lat = np.array([(w[0] - w[1]) * 1000.0 for w in window], dtype=float)
     states = [w[3] for w in window]
@@ -240,6 +251,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         "state_changes_per_min": round(state_changes_per_min([w[0] for w in window], states), 2),
         "tracking_share": round(states.count("tracking") / len(states), 3) if states else None,
         "state_shares": {st: round(states.count(st) / len(states), 3) for st in sorted(set(states))},
+        "truth": _against_truth(col, idx, states),
         "daemon": {
             "rss_mb": round(rss, 1),
             "peak_rss_mb": round(hwm, 1),
@@ -248,6 +260,27 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         "sim": {"cpu_share": round((sim1 - sim0) / (t1 - t0), 3) if sim_pid else None},
         "exit_status": code,
     }
+
+
+def _against_truth(col: _Collector, idx: list[int], states: list[str]) -> dict[str, Any] | None:
+    """The window's poses against the simulator's truth (``truth`` topic), interpolated to
+    each pose's stamp: the median position error, and the shares of poses ``lost`` within
+    0.5 m (``false_lost_fraction``) and ``tracking`` more than 1 m off
+    (``confident_wrong_fraction``, :mod:`services.evaluation.honesty`); None without truth."""
+    from services.evaluation.honesty import confident_wrong_fraction, false_lost_fraction
+
+    tr = np.array(sorted(col.truth), dtype=float).reshape(-1, 3)
+    stamps = np.array([col.poses[i][1] for i in idx], dtype=float)
+    inside = (stamps >= tr[0, 0]) & (stamps <= tr[-1, 0]) if len(tr) >= 2 else np.zeros(len(idx), bool)
+    if not inside.any():
+        return None
+    xy = np.array([col.xy[i] for i in idx], dtype=float)[inside]
+    tx, ty = (np.interp(stamps[inside], tr[:, 0], tr[:, k]) for k in (1, 2))
+    err = np.hypot(xy[:, 0] - tx, xy[:, 1] - ty)
+    st = [s for s, ok in zip(states, inside, strict=True) if ok]
+    return {"poses": int(inside.sum()), "median_error_m": round(float(np.median(err)), 3),
+            "false_lost_fraction": round(false_lost_fraction(err, st), 3),
+            "confident_wrong_fraction": round(confident_wrong_fraction(err, st), 3)}
 
 
 def _sim_toml_build() -> dict[str, Any]:
@@ -289,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--index-cache", default=None, help="[localizer.sensor] index_cache (the hnsw graph's folder)")
     p.add_argument("--state-hold", type=int, default=1,
                    help="[localizer.filter] state_hold (default %(default)s: the filter's default)")
+    p.add_argument("--misfit-alpha", type=float, default=None,
+                   help="[localizer.filter.view_fit] misfit_alpha (default: the filter's; 1: the share rule alone)")
     p.add_argument("--after-misfit", choices=("on", "off"), default="on",
                    help="[localizer.filter.challenge] after_misfit (default %(default)s: the filter's default)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
@@ -311,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
                    "particles": args.particles, "active_vision": args.active_vision, "state_hold": args.state_hold,
-                   "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat,
+                   "misfit_alpha": args.misfit_alpha, "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat,
                    "disparity": args.disparity, "translations": args.translations if args.disparity else 1},
         "pose_rate_hz": med(["pose_rate_hz"]),
         "frame_rate_hz": med(["frame_rate_hz"]),
@@ -320,6 +355,7 @@ def main(argv: list[str] | None = None) -> int:
         "dropped_frames": med(["dropped_frames"]),
         "state_changes_per_min": med(["state_changes_per_min"]),
         "tracking_share": med(["tracking_share"]),
+        "truth": {k: med(["truth", k]) for k in ("median_error_m", "false_lost_fraction", "confident_wrong_fraction")},
         "frames": med(["frames"]),
         "daemon": {"rss_mb": med(["daemon", "rss_mb"]), "peak_rss_mb": med(["daemon", "peak_rss_mb"]),
                    "cpu_share": med(["daemon", "cpu_share"])},

@@ -10,10 +10,12 @@ same setup, maps and frames as the command; no without-recovery comparison) for 
   light switch) the mean error, ``confident_wrong_fraction``, the episodes of error above 1 m
   and how many left ``tracking`` within 5 s, the share of frames ``tracking``, and for the
   uniform starts the time to converge (error) and to the first ``tracking`` frame, and how
-  often the state changed (``state_changes_per_min``);
+  often the state changed (``state_changes_per_min``) and the share of frames ``lost`` while
+  the estimate was within 0.5 m (``false_lost_fraction``) and of the frames more than 1 m off
+  (``lost_when_wrong``);
 - ``summary``: over all runs, the episodes caught within 5 s, the runs whose
   confident-wrong fraction exceeds 2 %, the uniform starts that converged, the mean
-  ``tracking`` share and state changes per minute by kind of run;
+  ``tracking`` share, false-lost share and state changes per minute by kind of run;
 - ``quality_by_world``: per world, the evaluation's quality table (error by band of the
   published ``quality``, over the graded runs) pooled over the seeds: frames, and the
   frame-weighted mean error, wrong share (error above 1 m) and ``tracking`` share per band
@@ -48,6 +50,8 @@ def _row(world: str, seed: int, name: str, res: dict[str, Any]) -> dict[str, Any
         "world": world, "seed": seed, "run": name,
         "mean_error_m": res.get("mean_error_m", res.get("mean_error_after_m")),
         "confident_wrong_fraction": res["confident_wrong_fraction"],
+        "false_lost_fraction": res["false_lost_fraction"],
+        "lost_when_wrong": res["lost_when_wrong"],
         "tracking_fraction": res["tracking_fraction"],
         "state_changes_per_min": res["state_changes_per_min"],
         "episodes": d["episodes"],
@@ -55,12 +59,12 @@ def _row(world: str, seed: int, name: str, res: dict[str, Any]) -> dict[str, Any
     }
 
 
-def one(args: tuple[str, int, tuple[str, ...]]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+def one(args: tuple[str, int, tuple[str, ...], dict[str, Any]]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Every run of ``eval tracking`` on one world and seed, per configuration ("default": the
     defaults), as rows, and the quality table per configuration. The frames are rendered once
     for all the configurations (the evaluation's own ``render_frames``, remembered in this
     process)."""
-    world, seed, configs = args
+    world, seed, configs, map_settings = args
     import functools
 
     import services.evaluation.tracking as tracking
@@ -81,7 +85,7 @@ def one(args: tuple[str, int, tuple[str, ...]]) -> tuple[list[dict[str, Any]], d
     for config in configs:
         cfg = None if config == "default" else load_config(config).localizer
         res = tracking.run(tracking.TrackingSetup(world=world, seed=seed, channels=tracking.DEFAULT_CHANNELS,
-                                                  workers=1, compare_recovery=False), cfg)
+                                                  workers=1, compare_recovery=False, **map_settings), cfg)
         rows += [{**r, "config": config} for r in _rows(world, seed, res)]
         tables[config] = res["quality_table"]
     return rows, tables
@@ -144,10 +148,19 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "state_changes_per_min_by_kind": {
             k: sum(r["state_changes_per_min"] for r in rows if r["run"].endswith(k)) /
             max(1, sum(r["run"].endswith(k) for r in rows)) for k in kinds},
-        "tracking_fraction_by_kind": {
-            k: sum(r["tracking_fraction"] for r in rows if r["run"].endswith(k)) /
-            max(1, sum(r["run"].endswith(k) for r in rows)) for k in kinds},
+        **{f"{key}_by_kind": {
+            k: sum(r[key] for r in rows if r["run"].endswith(k)) /
+            max(1, sum(r["run"].endswith(k) for r in rows)) for k in kinds}
+           for key in ("tracking_fraction", "false_lost_fraction")},
+        "lost_when_wrong_by_kind": {k: _mean([r["lost_when_wrong"] for r in rows if r["run"].endswith(k)])
+                                    for k in kinds},
     }
+
+
+def _mean(values: list[float | None]) -> float | None:
+    """The mean of the values that are not None; None if all are."""
+    v = [x for x in values if x is not None]
+    return sum(v) / len(v) if v else None
 
 
 def main() -> None:
@@ -158,16 +171,25 @@ def main() -> None:
                    "configuration file ('default': the defaults); repeat to compare configurations on "
                    "the same frames (default: the defaults alone)")
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--step", type=float, default=0.5, help="map grid step, m (the evaluation's default)")
+    p.add_argument("--heading-step", type=float, default=10.0, help="map heading step, degrees")
+    p.add_argument("--virtual-headings", type=int, default=1, help="map entries per survey image")
+    p.add_argument("--translations", type=int, default=1, help="odd m: virtual translations every step / m "
+                   "(config/sim.toml's map: --step 0.75 --heading-step 15 --virtual-headings 5 --translations 3 "
+                   "--disparity-features 5)")
+    p.add_argument("--disparity-features", type=int, default=None, help="the disparity channel's features")
     a = p.parse_args()
     configs = tuple(a.config or ["default"])
-    jobs = [(w, int(s), configs) for w in a.worlds.split(",") for s in a.seeds.split(",")]
+    map_settings = {"step": a.step, "heading_step_deg": a.heading_step, "virtual_headings": a.virtual_headings,
+                    "translations": a.translations, "disparity_features": a.disparity_features}
+    jobs = [(w, int(s), configs, map_settings) for w in a.worlds.split(",") for s in a.seeds.split(",")]
     rows: list[dict[str, Any]] = []
     tables: dict[tuple[str, str], list[list[dict[str, Any]]]] = {}
     t0 = time.monotonic()
     with ProcessPoolExecutor(a.jobs) as ex:
         for i, (r, q) in enumerate(ex.map(one, jobs), 1):
             rows += r
-            w, s, _ = jobs[i - 1]
+            w, s, _, _ = jobs[i - 1]
             for c, t in q.items():
                 tables.setdefault((c, w), []).append(t)
             print(f"[{time.monotonic() - t0:6.0f} s] {i}/{len(jobs)} done: {w} seed {s}",
@@ -176,7 +198,7 @@ def main() -> None:
     out = {c: {"summary": summary([r for r in rows if r["config"] == c]),
                "quality_by_world": {w: pool_quality(tables.get((c, w), [])) for w in worlds}}
            for c in configs}
-    print(json.dumps({"configs": out, "runs": rows}, indent=1))
+    print(json.dumps({"map": map_settings, "configs": out, "runs": rows}, indent=1))
 
 
 if __name__ == "__main__":

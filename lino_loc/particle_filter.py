@@ -47,7 +47,8 @@ lost test has since found the views contradicting the belief). The REPORTED stat
 (:attr:`AuxiliaryParticleFilter.state`, the estimate's) is also ``tracking`` only while the
 views confirm the belief (``lino_loc.view_fit``, per channel of the observation): views
 that cannot confirm any pose report it ``global``, an informative channel whose views stop
-fitting ``lost``, and it changes only once a new state has lasted ``state_hold`` updates
+fitting ``global`` too, and ``lost`` once they misfit beyond a right belief's chance
+(``ViewFitConfig.misfit_alpha``), and it changes only once a new state has lasted ``state_hold`` updates
 (``lino_loc.state_hold``; 1 by default: at once); the filter's own steps (what the lost test
 learns from) use the state above. The estimate's ``quality`` is ``lino_loc.quality``'s.
 
@@ -808,8 +809,8 @@ class AuxiliaryParticleFilter:
         self._hold.offer(self._proposed_state())
 
     def _rechallenge_if_refuted(self, mean: FloatArray, views: float) -> None:
-        """With ``challenge.after_misfit``: a tracked belief whose views have misfit
-        (``lino_loc.view_fit``; reported ``lost``) for ``challenge.after_misfit_views``
+        """With ``challenge.after_misfit``: a tracked belief whose views have stopped fitting
+        (``ViewFit.stopped_fitting``, the share rule; reported ``global`` or ``lost``) for ``challenge.after_misfit_views``
         independent views in a row must out-score its rivals again before it is ``tracking``
         (:meth:`_confirmed`); its rivals never join it. Without it, the same belief is
         reported ``tracking`` as soon as its views fit again, also when the views fit another
@@ -818,7 +819,7 @@ class AuxiliaryParticleFilter:
         c = self.config
         if not (c.challenge.after_misfit and c.challenge.enabled and c.view_fit.enabled):
             return
-        if self.view_fit.verdict() != "misfit":
+        if not self.view_fit.stopped_fitting():
             self._misfit_views = 0.0
             return
         self._misfit_views += views
@@ -845,7 +846,8 @@ class AuxiliaryParticleFilter:
         """The lost test's state (``global`` / ``tracking`` / ``lost``), and a ``tracking``
         belief only while the views confirm it (``lino_loc.view_fit``): views that cannot
         confirm any pose make it ``global``, an informative channel that stops fitting makes
-        it ``lost``. The filter's own steps use the lost test's state."""
+        it ``global`` and, beyond chance (``ViewFit.verdict``), ``lost``. The filter's own
+        steps use the lost test's state."""
         s = self._state
         if s != "tracking" or not self.config.view_fit.enabled:
             return s

@@ -32,7 +32,13 @@ verdict view by view. The verdict
 - ``misfit``: some informative channel's recent views stop fitting, f_c < ``min_fit`` x
   rho_c (the recent fit of a right belief is about rho_c; a fit well below the channel's own
   rate is what a wrong one shows): evidence against the belief, also when another channel
-  fits (two channels pointing at different places);
+  fits (two channels pointing at different places). With ``misfit_alpha`` alpha < 1 also
+  f_c below rho_c a^k, k = log(alpha) / log(1 - rho_c) (:func:`misfit_limit`): a fit a
+  right belief reaches only through a run of misses it makes with probability alpha. A
+  channel below its share but above that limit makes the verdict ``uninformative`` instead
+  (a channel that hits three views in four misses a few in a row by chance: the views do
+  not confirm the belief, but they do not refute it either). The filter's challenge after a
+  misfit counts the share alone (:meth:`ViewFit.stopped_fitting`), whatever alpha;
 - ``uninformative``: no channel is informative: the views cannot confirm any pose (except
   for a pose given by the user, :meth:`ViewFit.trust`, until
   :data:`~lino_loc.lost_detection.WARMUP_VIEWS` views have been learnt: the lost test alone
@@ -154,6 +160,14 @@ class ViewFitConfig(BaseModel):
         0.7, ge=0.0, le=1.0, description="an informative channel whose recent hit share falls "
         "below this share of its learnt hit rate no longer fits the belief: 'lost'",
     )
+    misfit_alpha: float = Field(
+        0.01, gt=0.0, le=1.0, description="'lost' only when the recent hit share is also one a "
+        "right belief falls to with probability below this per view (misfit_limit); below "
+        "min_fit but not that far, the belief is not confirmed ('global'): a channel whose "
+        "views hit often but not always (rho 0.6-0.8) misses a few views in a row by chance, "
+        "which does not say the belief is wrong; 1: the share alone; chosen on the tracking "
+        "evaluation's three worlds (docs/results.md, 'The lost flicker')",
+    )
     joint: Literal["off", "any", "agreeing"] = Field(
         "off", description="with two or more channels, their views together count as one more "
         "channel, 'joint': a hit when some channel's view fits the belief ('any'), and, "
@@ -182,6 +196,26 @@ class _ChannelFit:
     @property
     def rho(self) -> float:
         return (self.hits + 0.5) / (self.views + 1.0)
+
+    def misfits(self, min_fit: float, alpha: float) -> bool:
+        """Whether the recent fit is below :func:`misfit_limit` of rho."""
+        return self.fit < misfit_limit(self.rho, min_fit, alpha)
+
+
+def misfit_limit(rho: float, min_fit: float, alpha: float, memory: float = FIT_MEMORY) -> float:
+    """The recent fit below which a channel of learnt hit rate ``rho`` misfits:
+    min(``min_fit`` rho, rho a^k), a = ``memory``, k = log(alpha) / log(1 - rho).
+
+    The recent fit f <- a f + (1 - a) [hit] of a right belief whose views hit independently
+    at rate rho stays about rho; it falls from there to rho a^k only through about k missed
+    views in a row, which a right belief makes with probability (1 - rho)^k = ``alpha``. So
+    the second term bounds the chance that a right belief misfits at about ``alpha`` per view
+    whatever rho (the share alone, ``alpha`` = 1, misfits a right belief at 2 % of the views
+    when rho = 0.95 and at 20 % when rho = 0.6); the first is the share rule (a fit well
+    below the channel's own rate is what a wrong belief shows)."""
+    r = min(max(float(rho), 1e-9), 1.0 - 1e-9)
+    k = math.log(alpha) / math.log(1.0 - r)
+    return min(min_fit * r, r * memory**k)
 
 
 @dataclass
@@ -248,7 +282,7 @@ class ViewFit:
                 continue
             ch = self.channels.setdefault(name, _ChannelFit())
             hit = 1.0 if x > HIT_NATS else 0.0
-            suspect = ch.fit < self.config.min_fit * ch.rho
+            suspect = ch.misfits(self.config.min_fit, 1.0)
             ch.fit = a * ch.fit + (1.0 - a) * hit
             if learn:
                 m = (MEMORY_SUSPECT if suspect else MEMORY) ** v
@@ -277,14 +311,28 @@ class ViewFit:
         return [ch for ch in self.channels.values() if ch.informative or ch.heard]
 
     def verdict(self) -> Verdict:
-        """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring)."""
+        """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring): with
+        ``misfit_alpha`` < 1 a channel below its share of rho but above its
+        :func:`misfit_limit` leaves the belief unconfirmed (``uninformative``), not ``misfit``."""
+        v = self._verdict(self.config.misfit_alpha)
+        if v == "confirmed" and self.config.misfit_alpha < 1.0 and self.stopped_fitting():
+            return "uninformative"
+        return v
+
+    def stopped_fitting(self) -> bool:
+        """Whether the verdict by the share alone (``min_fit``; ``misfit_alpha`` = 1) is
+        ``misfit``: what the filter's challenge after a misfit counts, whatever
+        ``misfit_alpha``."""
+        return self._verdict(1.0) == "misfit"
+
+    def _verdict(self, alpha: float) -> Verdict:
         informative = self._informative()
         if not informative:
             warm = self._trusted and self._learnt < WARMUP_VIEWS
             return "confirmed" if warm else "uninformative"
         c = self.config
         heard = self._heard()
-        misfits = sum(ch.fit < c.min_fit * ch.rho for ch in heard)
+        misfits = sum(ch.misfits(c.min_fit, alpha) for ch in heard)
         if misfits:
             split = misfits < len(heard)
             return "uninformative" if split and c.split == "uninformative" else "misfit"

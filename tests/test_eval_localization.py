@@ -125,6 +125,7 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
         assert "without_recovery" in r
         for m in (r, r["global_start"], r["kidnap"]):
             assert 0.0 <= m["confident_wrong_fraction"] <= m["tracking_fraction"] + 1e-12 <= 1.0 + 1e-12
+            assert 0.0 <= m["false_lost_fraction"] <= 1.0 - m["tracking_fraction"] + 1e-12
             assert m["lost_delay_s"]["episodes"] >= m["lost_delay_s"]["caught"] >= 0
         assert r["kidnap"]["carried_m"] >= 0.0
     rows = res["quality_table"]
@@ -190,6 +191,30 @@ def test_light_switch_metrics_on_a_known_run() -> None:
     assert m["last_lost_after_switch_s"] == pytest.approx(0.5)  # frame 5, 0.5 s after the switch
     quiet = tracking.switch_metrics(stamps, est, truth, ["tracking"] * 8, 4)
     assert quiet["lost_fraction_after"] == 0.0 and quiet["last_lost_after_switch_s"] == 0.0
+
+
+def test_tracking_map_settings_reach_the_map_build(monkeypatch, office_map, capsys) -> None:
+    """`eval tracking --step --heading-step --virtual-headings --translations
+    --disparity-features` build the map they name (the simulated service's); bad values are one-line errors."""
+    from services.cli import main
+
+    seen: dict = {}
+
+    def fake_build(world, step, heading_step_deg, features, preprocesses, **kw):
+        seen.update(world=world, step=step, heading=heading_step_deg, **kw)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(tracking, "build_sim_maps", fake_build)
+    with pytest.raises(SystemExit):
+        main(["eval", "tracking", "--world", "office", "--step", "0.75", "--heading-step", "15",
+              "--virtual-headings", "5", "--translations", "3", "--disparity-features", "5"])
+    assert (seen["step"], seen["heading"], seen["virtual_headings"], seen["translations"],
+            seen["disparity_features"], seen["disparity"]) == (0.75, 15.0, 5, 3, 5, True)
+    for bad, needle in ((["--translations", "2"], "--translations must be odd"),
+                        (["--step", "0"], "--step and --heading-step must be positive"),
+                        (["--disparity-features", "0"], "--disparity-features must be positive")):
+        assert main(["eval", "tracking", *bad]) == 2
+        assert needle in capsys.readouterr().err
 
 
 def test_switch_lights_argument_errors(capsys) -> None:

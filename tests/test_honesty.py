@@ -9,9 +9,11 @@ import pytest
 
 from services.evaluation.honesty import (
     confident_wrong_fraction,
+    false_lost_fraction,
     honesty_metrics,
     lost_delay_summary,
     lost_delays,
+    lost_when_wrong,
     quality_table,
     state_changes_per_min,
     wrong_episodes,
@@ -30,6 +32,25 @@ def test_confident_wrong_counts_tracking_frames_over_one_metre() -> None:
     assert confident_wrong_fraction(err, states) == pytest.approx(2 / 6)
     assert confident_wrong_fraction([1.0], [T]) == 0.0  # exactly 1 m is not wrong
     assert confident_wrong_fraction([], []) == 0.0
+
+
+def test_false_lost_counts_lost_frames_within_half_a_metre() -> None:
+    err = [0.2, 0.5, 0.6, 1.5, 0.1, 0.3]
+    states = [L, L, L, L, T, G]
+    assert false_lost_fraction(err, states) == pytest.approx(2 / 6)  # exactly 0.5 m is right
+    assert false_lost_fraction([], []) == 0.0
+    with pytest.raises(ValueError, match="differ in length"):
+        false_lost_fraction([0.1], [L, L])
+    assert honesty_metrics(_stamps(6), err, states)["false_lost_fraction"] == pytest.approx(2 / 6)
+
+
+def test_lost_when_wrong_is_the_lost_share_of_the_frames_over_one_metre() -> None:
+    err = [0.2, 1.5, 1.5, 2.0, 1.0, 3.0]
+    states = [L, L, T, G, L, L]
+    assert lost_when_wrong(err, states) == pytest.approx(2 / 4)  # exactly 1 m is not wrong
+    assert lost_when_wrong([0.3], [L]) is None
+    with pytest.raises(ValueError, match="differ in length"):
+        lost_when_wrong([2.0], [])
 
 
 def test_episodes_are_maximal_runs_and_short_dips_merge() -> None:

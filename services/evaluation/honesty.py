@@ -7,6 +7,12 @@ optionally the estimate's ``quality`` q_k in [0, 1].
 - :func:`confident_wrong_fraction`: the share of frames with s_k = ``tracking`` and
   e_k > ``wrong_m`` (:data:`WRONG_M`, 1 m): the state says "I know where I am" while the
   estimate is more than a metre off.
+- :func:`false_lost_fraction`: the share of frames with s_k = ``lost`` and e_k <=
+  ``right_m`` (:data:`RIGHT_M`, 0.5 m: the tracking criterion of the paper's section 7): the
+  state says "I do not know where I am" while the estimate is right, the false alarm that
+  makes a client stop the robot for nothing; :func:`lost_when_wrong`, its counterpart: of
+  the frames with e_k > ``wrong_m``, the share in state ``lost`` (the rest are ``tracking``,
+  confident-wrong, or ``global``, not confirmed).
 - :func:`wrong_episodes`: the episodes of error above ``wrong_m``. An episode is a maximal
   run of frames with e_k > wrong_m, where runs separated by a dip (frames with e_k <=
   wrong_m) lasting less than ``merge_s`` (:data:`MERGE_S`, 2 s, from the last wrong frame
@@ -43,6 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 WRONG_M = 1.0  # an estimate this far off (m) is wrong
+RIGHT_M = 0.5  # an estimate this close (m) is right (the paper's section 7: error below 50 cm)
 MERGE_S = 2.0  # dips below WRONG_M shorter than this (s) do not end an episode
 WITHIN_S = 5.0  # an episode is caught in time when the state leaves tracking within this (s)
 QUALITY_EDGES = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
@@ -65,6 +72,24 @@ def confident_wrong_fraction(errors: ArrayLike, states: Sequence[str], wrong_m: 
     if e.size == 0:
         return 0.0
     return float(np.mean(tracking & (e > wrong_m)))
+
+
+def false_lost_fraction(errors: ArrayLike, states: Sequence[str], right_m: float = RIGHT_M) -> float:
+    """The share of frames in state ``lost`` with a position error of at most ``right_m``."""
+    e, lost = np.asarray(errors, dtype=np.float64).reshape(-1), np.array([s == "lost" for s in states])
+    if lost.size != e.size:
+        raise ValueError(f"errors and states differ in length: {e.size}, {lost.size}")
+    return float(np.mean(lost & (e <= right_m))) if e.size else 0.0
+
+
+def lost_when_wrong(errors: ArrayLike, states: Sequence[str], wrong_m: float = WRONG_M) -> float | None:
+    """The share of the frames with a position error above ``wrong_m`` whose state is
+    ``lost``; None when no frame is that wrong."""
+    e, lost = np.asarray(errors, dtype=np.float64).reshape(-1), np.array([s == "lost" for s in states])
+    if lost.size != e.size:
+        raise ValueError(f"errors and states differ in length: {e.size}, {lost.size}")
+    wrong = e > wrong_m
+    return float(lost[wrong].mean()) if wrong.any() else None
 
 
 def wrong_episodes(
@@ -140,11 +165,13 @@ def state_changes_per_min(stamps: ArrayLike, states: Sequence[str]) -> float:
 
 def honesty_metrics(stamps: ArrayLike, errors: ArrayLike, states: Sequence[str]) -> dict[str, Any]:
     """``tracking_fraction`` (the share of frames ``tracking``: what honesty costs),
-    ``confident_wrong_fraction``, ``lost_delay_s`` (:func:`lost_delay_summary`) and
+    ``confident_wrong_fraction``, ``false_lost_fraction``, ``lost_when_wrong``, ``lost_delay_s`` (:func:`lost_delay_summary`) and
     ``state_changes_per_min`` (:func:`state_changes_per_min`) of one run."""
     return {
         "tracking_fraction": float(np.mean([s == "tracking" for s in states])) if len(states) else 0.0,
         "confident_wrong_fraction": confident_wrong_fraction(errors, states),
+        "false_lost_fraction": false_lost_fraction(errors, states),
+        "lost_when_wrong": lost_when_wrong(errors, states),
         "lost_delay_s": lost_delay_summary(stamps, errors, states),
         "state_changes_per_min": state_changes_per_min(stamps, states),
     }

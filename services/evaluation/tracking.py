@@ -3,7 +3,10 @@
 
 Setting: the lab world, a map every 50 cm and 10 deg (the lab survey grid of section 6.2,
 ~4500 views) rendered under the mapping light ``tube`` with no scene changes; ``features``
-PCA features of the preprocessed images (``none`` / ``histeq`` / ``gradient``). The robot
+PCA features of the preprocessed images (``none`` / ``histeq`` / ``gradient``);
+``step``, ``heading_step_deg``, ``virtual_headings``, ``translations`` and
+``disparity_features`` make other maps (the simulated service's: 0.75 m, 15 deg, 5, 3 and 5,
+``services.evaluation.views.build_sim_maps``). The robot
 drives for ``duration`` seconds along a drive plan (:mod:`drivers.sim.drive`: a
 smooth path through the free space of the CHANGED scene, wheel odometry with slip, per-wheel
 scale errors and a wrong wheel base), the camera fixed (pan 0), one update per camera frame
@@ -75,6 +78,9 @@ class TrackingSetup:
     world: str = "lab"
     step: float = 0.5
     heading_step_deg: float = 10.0
+    virtual_headings: int = 1  # map entries per survey image, turned 3 deg apart (lino_loc.virtual_views)
+    translations: int = 1  # odd m > 1: the map also holds virtual translations every step / m
+    disparity_features: int | None = None  # the disparity channel's features (default: features)
     features: int = 20
     preprocess: tuple[str, ...] = (DEFAULT_PREPROCESS,)
     lights: tuple[str, ...] = ("tube", "bulb", "natural")
@@ -254,7 +260,8 @@ def run(
             setup.world, setup.step, setup.heading_step_deg, setup.features, tuple(setup.preprocess),
             width=setup.width, height=setup.height, size=setup.size, seed=setup.seed, workers=setup.workers,
             progress=(lambda d, n: progress("map", d, n)) if progress else None, disparity=setup.disparity,
-            stereo=setup.stereo,
+            stereo=setup.stereo, virtual_headings=setup.virtual_headings, translations=setup.translations,
+            disparity_features=setup.disparity_features,
         )
     plan = plan_drive(world, DriveConfig(duration=setup.duration, camera_rate=setup.rate, scene_changes=changes),
                       seed=setup.seed + 7)
@@ -362,6 +369,9 @@ def run(
         "map_entries": int(np.asarray(maps[head].poses).shape[0]),
         "map_step_m": float(setup.step),
         "map_heading_step_deg": float(setup.heading_step_deg),
+        "virtual_headings": int(setup.virtual_headings),
+        "translations": int(setup.translations),
+        "disparity_features": setup.disparity_features,
         "features": int(np.asarray(maps[head].channels["intensity"].features).shape[1]),
         "preprocess": head,
         "channels": list(setup.channels),
