@@ -289,7 +289,7 @@ def _misfit_run(after_misfit: bool, twin: bool, seed: int = 0, views: float = 1.
     """A robot driving east at 0.1 m per frame from (2, 2, 0), its belief gathered at the true
     place, the view fit on. Frames 0-29: each view's mixture has one kernel, at the truth;
     frames 30-39: at a place far from it (the views stop fitting: a misfit, reported
-    ``lost``); from frame 40 at the truth again and, with ``twin``, as strongly at a place that
+    ``global`` or ``lost``); from frame 40 at the truth again and, with ``twin``, as strongly at a place that
     moves as a robot 5 m away facing west would (a view that fits both). The states' first
     letters, one per frame. ``views``: ``after_misfit_views`` (a frame is 0.29 of a view)."""
     from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
@@ -326,7 +326,9 @@ def test_a_refuted_belief_is_tracking_again_only_once_it_beats_its_rivals() -> N
     for after in (False, True):
         for twin in (False, True):
             s = _misfit_run(after, twin)
-            assert "t" in s[:30] and "l" in s[30:42], (after, twin, s)
+            # the misfit: not tracking (global: within a right belief's chance of misses,
+            # lino_loc.view_fit.misfit_limit; lost beyond it)
+            assert "t" in s[:30] and set(s[37:41]) <= {"g", "l"}, (after, twin, s)
     assert _misfit_run(False, twin=True)[50:] == "t" * 40
     rechallenged = _misfit_run(True, twin=True)
     assert "t" not in rechallenged[38:] and rechallenged[-40:] == "g" * 40
