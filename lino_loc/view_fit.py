@@ -315,7 +315,7 @@ class ViewFit:
         ``misfit_alpha`` < 1 a channel below its share of rho but above its
         :func:`misfit_limit` leaves the belief unconfirmed (``uninformative``), not ``misfit``."""
         v = self._verdict(self.config.misfit_alpha)
-        if v == "confirmed" and self.config.misfit_alpha < 1.0 and self.stopped_fitting():
+        if v == "confirmed" and self.config.misfit_alpha < 1.0 and self._verdict(1.0) != "confirmed":
             return "uninformative"
         return v
 

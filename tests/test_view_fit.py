@@ -178,6 +178,20 @@ def test_a_split_between_informative_channels_can_be_unconfirmed_instead_of_lost
         assert fit.verdict() == "misfit"
 
 
+def test_a_split_within_chance_is_unconfirmed_whatever_the_split_setting() -> None:
+    """Disparity hits about 0.7 of a right belief's views, intensity all: three disparity
+    misses are below its share but within chance (misfit_limit), so the belief is unconfirmed,
+    never confirmed, with either ``split``."""
+    for split in ("misfit", "uninformative"):
+        fit = ViewFit(ViewFitConfig(split=split))
+        _teach(fit, {"intensity": [HIT] * 10, "disparity": [HIT, HIT, MISS, HIT, HIT, HIT, MISS, HIT, HIT, MISS]}, 20)
+        fit.new_belief()
+        for _ in range(3):
+            fit.update({"intensity": HIT, "disparity": MISS}, 1.0, learn=False)
+        assert fit.stopped_fitting() == (split == "misfit")
+        assert fit.verdict() == "uninformative", split
+
+
 def test_channels_that_keep_pointing_at_different_places_leave_the_belief_unconfirmed() -> None:
     """The share of disagreeing views follows DISAGREE_MEMORY per view; agreeing channels
     (overlap 1) give none, disjoint ones (overlap 0) drive it to 1; per view, not per frame."""
