@@ -74,20 +74,24 @@ def confident_wrong_fraction(errors: ArrayLike, states: Sequence[str], wrong_m: 
     return float(np.mean(tracking & (e > wrong_m)))
 
 
+def _errors_in(errors: ArrayLike, states: Sequence[str], state: str) -> tuple[np.ndarray, np.ndarray]:
+    """The errors as an array and which frames are in ``state``; their lengths must agree."""
+    e, mask = np.asarray(errors, dtype=np.float64).reshape(-1), np.array([s == state for s in states], dtype=bool)
+    if mask.size != e.size:
+        raise ValueError(f"errors and states differ in length: {e.size}, {mask.size}")
+    return e, mask
+
+
 def false_lost_fraction(errors: ArrayLike, states: Sequence[str], right_m: float = RIGHT_M) -> float:
     """The share of frames in state ``lost`` with a position error of at most ``right_m``."""
-    e, lost = np.asarray(errors, dtype=np.float64).reshape(-1), np.array([s == "lost" for s in states])
-    if lost.size != e.size:
-        raise ValueError(f"errors and states differ in length: {e.size}, {lost.size}")
+    e, lost = _errors_in(errors, states, "lost")
     return float(np.mean(lost & (e <= right_m))) if e.size else 0.0
 
 
 def lost_when_wrong(errors: ArrayLike, states: Sequence[str], wrong_m: float = WRONG_M) -> float | None:
     """The share of the frames with a position error above ``wrong_m`` whose state is
     ``lost``; None when no frame is that wrong."""
-    e, lost = np.asarray(errors, dtype=np.float64).reshape(-1), np.array([s == "lost" for s in states])
-    if lost.size != e.size:
-        raise ValueError(f"errors and states differ in length: {e.size}, {lost.size}")
+    e, lost = _errors_in(errors, states, "lost")
     wrong = e > wrong_m
     return float(lost[wrong].mean()) if wrong.any() else None
 
