@@ -67,8 +67,7 @@ def _arrays(stamps: ArrayLike, errors: ArrayLike, states: Sequence[str]) -> tupl
 def confident_wrong_fraction(errors: ArrayLike, states: Sequence[str], wrong_m: float = WRONG_M) -> float:
     """Share of the frames whose state is ``tracking`` while the error exceeds ``wrong_m``
     (0 for an empty run)."""
-    e = np.asarray(errors, dtype=np.float64).reshape(-1)
-    tracking = np.array([s == "tracking" for s in states], dtype=bool)
+    e, tracking = _errors_in(errors, states, "tracking")
     if e.size == 0:
         return 0.0
     return float(np.mean(tracking & (e > wrong_m)))

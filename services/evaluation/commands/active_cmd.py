@@ -25,7 +25,7 @@ from services.evaluation.active_setup import (
     paper_setup,
     product_defaults,
 )
-from services.evaluation.commands.localization_cmd import parse_channels
+from services.evaluation.commands.localization_cmd import check_translations, parse_channels
 from services.evaluation.decision_rules import DECISIONS
 from services.evaluation.plotting import pyplot
 from services.progress import Progress
@@ -191,8 +191,8 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
             raise LinoLocError(f"{name} must be at least 1 (got {value})")
     if "residual_scale" in given and not given["residual_scale"] > 0.0:
         raise LinoLocError(f"--residual-scale must be positive (got {given['residual_scale']})")
-    if "translations" in given and (given["translations"] < 1 or given["translations"] % 2 == 0):
-        raise LinoLocError(f"--translations must be odd and positive (got {given['translations']})")
+    if "translations" in given:
+        check_translations(given["translations"])
     if args.paper:
         _check_paper(given)
     try:

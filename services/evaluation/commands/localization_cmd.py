@@ -46,6 +46,14 @@ def _localizer_config(args: argparse.Namespace):  # -> LocalizerConfig
     return cfg
 
 
+def check_translations(m: int) -> int:
+    """``--translations`` m: odd and positive (the lattice of virtual translations has a centre
+    view, ``lino_loc.virtual_translations``), else a one-line error."""
+    if m < 1 or m % 2 == 0:
+        raise LinoLocError(f"--translations must be odd and positive (got {m})")
+    return m
+
+
 def parse_channels(text: str) -> tuple[str, ...]:
     """``--channels``: ``intensity`` or ``intensity,disparity`` (the map's channels, fused by
     eq. 8 with the ``[localizer.fusion]`` settings when disparity is among them)."""
@@ -206,8 +214,7 @@ def _tracking(args: argparse.Namespace) -> int:
         raise LinoLocError("--duration and --rate must be positive")
     if args.step <= 0 or args.heading_step <= 0:
         raise LinoLocError("--step and --heading-step must be positive")
-    if args.translations < 1 or args.translations % 2 == 0:
-        raise LinoLocError(f"--translations must be odd and positive (got {args.translations})")
+    check_translations(args.translations)
     if args.disparity_features is not None and args.disparity_features < 1:
         raise LinoLocError(f"--disparity-features must be positive (got {args.disparity_features})")
     setup = TrackingSetup(world=args.world, features=args.features, preprocess=pre, lights=lights,
