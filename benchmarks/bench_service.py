@@ -126,7 +126,9 @@ port = "auto"
 [localizer.filter]
 n_particles = {args.particles}
 state_hold = {args.state_hold}
-{"" if args.misfit_alpha is None else f"[localizer.filter.view_fit]{chr(10)}misfit_alpha = {args.misfit_alpha}"}
+[localizer.filter.view_fit]
+{"" if args.misfit_alpha is None else f"misfit_alpha = {args.misfit_alpha}"}
+{"" if args.invariant_prior is None else f"invariant_prior = {args.invariant_prior}"}
 [localizer.filter.challenge]
 after_misfit = {"true" if args.after_misfit == "on" else "false"}
 [active_vision]
@@ -324,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="[localizer.filter] state_hold (default %(default)s: the filter's default)")
     p.add_argument("--misfit-alpha", type=float, default=None,
                    help="[localizer.filter.view_fit] misfit_alpha (default: the filter's; 1: the share rule alone)")
+    p.add_argument("--invariant-prior", type=float, default=None,
+                   help="[localizer.filter.view_fit] invariant_prior (default: the filter's; 0: none)")
     p.add_argument("--after-misfit", choices=("on", "off"), default="on",
                    help="[localizer.filter.challenge] after_misfit (default %(default)s: the filter's default)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
@@ -346,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
                    "particles": args.particles, "active_vision": args.active_vision, "state_hold": args.state_hold,
-                   "misfit_alpha": args.misfit_alpha, "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat,
+                   "misfit_alpha": args.misfit_alpha, "invariant_prior": args.invariant_prior, "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat,
                    "disparity": args.disparity, "translations": args.translations if args.disparity else 1},
         "pose_rate_hz": med(["pose_rate_hz"]),
         "frame_rate_hz": med(["frame_rate_hz"]),

@@ -65,6 +65,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.special import i0e
 
 from lino_loc.errors import LinoLocError
+from lino_loc.exact_neighbours import MARGIN, settle
 from lino_loc.poses import wrap_angle
 from lino_loc.resampling import logsumexp
 
@@ -708,13 +709,11 @@ class NearestNeighbourSensorModel:
         overrides J.
 
         The search (KD-tree, brute force or the approximate HNSW graph, :attr:`index_kind`)
-        only selects the J entries;
-        their squared distances are then computed one way for both, sum_k (f_k - y_k)^2, so the
-        answer does not depend on which search "auto" chose (it times them on the machine it
-        runs on): a replay of a recording gives the same weights to the bit. Except for
-        identical map rows: they tie, and which of them enter the J set depends on the search.
-        The Localizer leaves out the disparity channel's entries with no stereo match
-        (``ChannelMap.observed_rows``), the identical rows a survey makes."""
+        only proposes J + ``MARGIN`` candidates; the J set and their squared distances are
+        then settled one way for every search (:func:`lino_loc.exact_neighbours.settle`:
+        sum_k (f_k - y_k)^2, ties to the lowest indices, also among identical map rows), so
+        the answer does not depend on which search "auto" chose (it times them on the machine
+        it runs on): a replay of a recording gives the same weights to the bit."""
         q = np.atleast_2d(np.asarray(y, dtype=np.float64))
         if q.shape[1] != self.dim:
             raise LinoLocError(f"observed features: expected {self.dim} values, got {q.shape[1]}")
@@ -725,11 +724,8 @@ class NearestNeighbourSensorModel:
         if q.shape[0] > block:  # bound the (B, N) work arrays of brute force
             parts = [self.neighbours(q[lo : lo + block], j) for lo in range(0, q.shape[0], block)]
             return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
-        idx = self._nearest(q, j)
-        diff = self.features[idx] - q[:, None, :]
-        d2 = np.einsum("bjk,bjk->bj", diff, diff)
-        order = np.lexsort((idx, d2), axis=1)
-        return np.take_along_axis(idx, order, axis=1), np.take_along_axis(d2, order, axis=1)
+        n = self.poses.shape[0]
+        return settle(self.features, q, self._nearest(q, min(j + MARGIN, n)), j)
 
     def _nearest(self, q: FloatArray, j: int) -> IntArray:
         """Indices (B, j), in no particular order, of the j map entries nearest to each row of q."""

@@ -19,7 +19,14 @@ v_t (``lino_loc.lost_detection.independent_views``), two rates are kept per chan
   :data:`MEMORY_SUSPECT` while the channel misfits, learnt only while ``learn`` (the belief
   is trusted), forgotten (with the recent fit) when the appearance changed (lights switched),
   except for a channel the light does not change (:data:`LIGHT_INVARIANT`). It says how able the
-  channel's views are to confirm a pose here and under this light;
+  channel's views are to confirm a pose here and under this light. With ``invariant_prior``
+  p > 0 a light-invariant channel starts (after a reset) from p n hits in n =
+  ``invariant_prior_views`` views besides Jeffreys' prior, and is heard (its misfit counts,
+  below) until it has learnt n views of its own: the first belief a search converges to is
+  judged by its disparity views, not only by what it teaches them (a wrong first belief
+  whose disparity misses every view would otherwise teach that channel a low rate, and the
+  other channel to confirm it). With p below ``informative_hit_rate`` the prior alone never
+  makes the channel informative: it can refute a belief, not confirm one;
 - f_c, the recent fit: ``f <- a f + (1 - a) [hit]``, ``a = FIT_MEMORY ** v_t``, from 1 for a
   new belief (it fits until its views say otherwise).
 
@@ -183,6 +190,20 @@ class ViewFitConfig(BaseModel):
         "this share of the recent views had channels placing the camera at different places "
         "(lino_loc.channel_agreement overlap below MIN_OVERLAP); 1: off",
     )
+    invariant_prior: float = Field(
+        0.5, ge=0.0, lt=1.0, description="the hit rate a light-invariant channel (disparity) "
+        "starts from after a reset, worth invariant_prior_views views; the channel is heard "
+        "(its misfit counts) until it has learnt that many views of its own: the first belief a "
+        "search converges to is judged by its disparity views, not only by what it teaches (a "
+        "wrong belief whose disparity misses every view would otherwise teach that channel a "
+        "low rate, and the other channel to confirm it); below informative_hit_rate the prior "
+        "alone never confirms a pose; 0: Jeffreys' prior (1/2 of one view) alone; chosen on "
+        "the tracking evaluation's three worlds (docs/results.md, 'A wrong first belief')",
+    )
+    invariant_prior_views: float = Field(
+        10.0, ge=0.0, description="the independent views invariant_prior is worth (the learnt "
+        "rate forgets them as it forgets old views)",
+    )
 
 
 @dataclass
@@ -192,6 +213,8 @@ class _ChannelFit:
     fit: float = 1.0  # f_c of the current belief
     heard: bool = False  # kept informative (``joint = "any"``, light-invariant channels)
     informative: bool = False  # rho reached the informative rate (with its margin)
+    own: float = 0.0  # views this channel learnt since the reset
+    prior_views: float = 0.0  # heard until ``own`` reaches this (``invariant_prior_views``)
 
     @property
     def rho(self) -> float:
@@ -280,11 +303,12 @@ class ViewFit:
         for name, x in excess.items():
             if math.isnan(x):
                 continue
-            ch = self.channels.setdefault(name, _ChannelFit())
+            ch = self.channels.get(name) or self._new_channel(name)
             hit = 1.0 if x > HIT_NATS else 0.0
             suspect = ch.misfits(self.config.min_fit, 1.0)
             ch.fit = a * ch.fit + (1.0 - a) * hit
             if learn:
+                ch.own += v
                 m = (MEMORY_SUSPECT if suspect else MEMORY) ** v
                 ch.hits = m * ch.hits + v * hit
                 ch.views = m * ch.views + v
@@ -293,6 +317,17 @@ class ViewFit:
             if self.config.joint == "any" and name in LIGHT_INVARIANT:
                 r = ch.rho
                 ch.heard = r >= self.config.informative_hit_rate or (ch.heard and r >= HEARD_HIT_RATE)
+
+    def _new_channel(self, name: str) -> _ChannelFit:
+        """A channel's first view since the reset: Jeffreys' prior, and for a light-invariant
+        channel with ``invariant_prior`` p > 0 also p n hits in n = ``invariant_prior_views``
+        views, heard until it has learnt n views of its own."""
+        ch = _ChannelFit()
+        p, n = self.config.invariant_prior, self.config.invariant_prior_views
+        if p > 0.0 and name in LIGHT_INVARIANT:
+            ch.hits, ch.views, ch.prior_views = p * n, n, n
+        self.channels[name] = ch
+        return ch
 
     def _joint_excess(self, seen: list[float], overlap: float) -> float:
         """The joint channel's excess: the largest channel's; with ``joint = "agreeing"`` the
@@ -307,8 +342,9 @@ class ViewFit:
         return [ch for ch in self.channels.values() if ch.informative]
 
     def _heard(self) -> list[_ChannelFit]:
-        """The channels whose misfit counts: the informative ones and those kept heard."""
-        return [ch for ch in self.channels.values() if ch.informative or ch.heard]
+        """The channels whose misfit counts: the informative ones, those kept heard and those
+        still judged by their prior."""
+        return [ch for ch in self.channels.values() if ch.informative or ch.heard or ch.own < ch.prior_views]
 
     def verdict(self) -> Verdict:
         """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring): with

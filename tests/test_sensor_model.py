@@ -320,3 +320,29 @@ def test_brute_force_and_kdtree_give_the_same_bits() -> None:
         np.testing.assert_array_equal(bi, ti)
         assert np.array_equal(bd, td)  # the same bits, not only close
         assert np.all(np.diff(bd, axis=1) >= 0)
+
+
+@pytest.mark.parametrize("index", ["brute", "kdtree", "hnsw"])
+def test_identical_map_rows_tie_to_the_lowest_indices_whatever_the_search(index: str) -> None:
+    """Groups of identical map rows (a virtual translation with no depth to move is its source
+    image again) straddle the J-th neighbour: which of them enter the J set must not depend on
+    the search 'auto' picked, nor on the order the rows were met: the lowest indices, by
+    sum_k (f_k - y_k)^2 (lino_loc.exact_neighbours.settle)."""
+    if index == "hnsw":
+        pytest.importorskip("hnswlib")
+    poses, feats = _random_map(n=2500, d=20, seed=6)
+    rng = np.random.default_rng(7)
+    groups = list(rng.permutation(2500)[:270].reshape(30, 9))  # disjoint groups of 9
+    for g in groups:
+        feats[g] = feats[g[0]]
+    model = NearestNeighbourSensorModel(poses, feats, SensorModelConfig(j=10, index=index))
+    for g in groups:
+        for j in (1, 4, 10):
+            q = feats[g[0]] + 1e-3 * rng.normal(size=20)
+            idx, d2 = model.neighbours(q, j)
+            exact = np.einsum("nk,nk->n", feats - q, feats - q)
+            want = np.lexsort((np.arange(2500), exact))[:j]
+            np.testing.assert_array_equal(idx[0], want)  # the group's lowest indices first
+            np.testing.assert_array_equal(d2[0], exact[want])
+    tied = model.neighbours(np.stack([feats[g[0]] for g in groups]), 4)[0]
+    assert all(set(row) <= set(g) and list(row) == sorted(g)[:4] for row, g in zip(tied, groups, strict=True))
