@@ -164,6 +164,12 @@ def _mean(values: list[float | None]) -> float | None:
 
 
 def main() -> None:
+    from lino_loc.errors import LinoLocError
+    from services.evaluation.commands.localization_cmd import (
+        add_tracking_map_arguments,
+        tracking_map_settings,
+    )
+
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--worlds", default="lab,office,corridor")
     p.add_argument("--seeds", default="0,1,2")
@@ -171,17 +177,14 @@ def main() -> None:
                    "configuration file ('default': the defaults); repeat to compare configurations on "
                    "the same frames (default: the defaults alone)")
     p.add_argument("--jobs", type=int, default=2)
-    p.add_argument("--step", type=float, default=0.5, help="map grid step, m (the evaluation's default)")
-    p.add_argument("--heading-step", type=float, default=10.0, help="map heading step, degrees")
-    p.add_argument("--virtual-headings", type=int, default=1, help="map entries per survey image")
-    p.add_argument("--translations", type=int, default=1, help="odd m: virtual translations every step / m "
-                   "(config/sim.toml's map: --step 0.75 --heading-step 15 --virtual-headings 5 --translations 3 "
-                   "--disparity-features 5)")
-    p.add_argument("--disparity-features", type=int, default=None, help="the disparity channel's features")
+    add_tracking_map_arguments(p)  # eval tracking's own (config/sim.toml's map: --step 0.75 --heading-step 15
+    # --virtual-headings 5 --translations 3 --disparity-features 5)
     a = p.parse_args()
     configs = tuple(a.config or ["default"])
-    map_settings = {"step": a.step, "heading_step_deg": a.heading_step, "virtual_headings": a.virtual_headings,
-                    "translations": a.translations, "disparity_features": a.disparity_features}
+    try:
+        map_settings = tracking_map_settings(a)
+    except LinoLocError as e:
+        p.error(str(e))
     jobs = [(w, int(s), configs, map_settings) for w in a.worlds.split(",") for s in a.seeds.split(",")]
     rows: list[dict[str, Any]] = []
     tables: dict[tuple[str, str], list[list[dict[str, Any]]]] = {}

@@ -43,10 +43,14 @@ def settle(features: FloatArray, q: FloatArray, candidates: IntArray, j: int) ->
     idx, d2 = _ranked(candidates, _distances(features, q, candidates))
     m = idx.shape[1]
     if m > j:
-        last, jth = d2[:, m - 1], d2[:, j - 1]
-        for b in np.flatnonzero(last <= jth * (1.0 + TIE_RTOL) + np.finfo(np.float64).tiny):
+        for b in np.flatnonzero(_tied(d2[:, m - 1], d2[:, j - 1])):
             idx[b], d2[b] = _every_entry(features, q[b : b + 1], m)
     return np.ascontiguousarray(idx[:, :j]), np.ascontiguousarray(d2[:, :j])
+
+
+def _tied(d2: FloatArray, ref: FloatArray | float) -> NDArray[np.bool_]:
+    """Squared distances ``d2`` no farther than ``ref`` beyond round-off (:data:`TIE_RTOL`)."""
+    return d2 <= ref * (1.0 + TIE_RTOL) + np.finfo(np.float64).tiny
 
 
 def _distances(features: FloatArray, q: FloatArray, idx: IntArray) -> FloatArray:
@@ -72,6 +76,6 @@ def _every_entry(features: FloatArray, y: FloatArray, m: int) -> tuple[IntArray,
         diff = features[lo : lo + BLOCK] - y[0]
         d2[lo : lo + diff.shape[0]] = np.einsum("nk,nk->n", diff, diff)
     kth = np.partition(d2, m - 1)[m - 1]
-    near = np.flatnonzero(d2 <= kth * (1.0 + TIE_RTOL) + np.finfo(np.float64).tiny)[None, :]
+    near = np.flatnonzero(_tied(d2, kth))[None, :]
     idx, dist = _ranked(near, _distances(features, y, near))
     return idx[0, :m], dist[0, :m]

@@ -214,7 +214,6 @@ class _ChannelFit:
     heard: bool = False  # kept informative (``joint = "any"``, light-invariant channels)
     informative: bool = False  # rho reached the informative rate (with its margin)
     own: float = 0.0  # views this channel learnt since the reset
-    prior_views: float = 0.0  # heard until ``own`` reaches this (``invariant_prior_views``)
 
     @property
     def rho(self) -> float:
@@ -323,11 +322,15 @@ class ViewFit:
         channel with ``invariant_prior`` p > 0 also p n hits in n = ``invariant_prior_views``
         views, heard until it has learnt n views of its own."""
         ch = _ChannelFit()
-        p, n = self.config.invariant_prior, self.config.invariant_prior_views
-        if p > 0.0 and name in LIGHT_INVARIANT:
-            ch.hits, ch.views, ch.prior_views = p * n, n, n
+        if self._has_prior(name):
+            n = self.config.invariant_prior_views
+            ch.hits, ch.views = self.config.invariant_prior * n, n
         self.channels[name] = ch
         return ch
+
+    def _has_prior(self, name: str) -> bool:
+        """Whether channel ``name`` starts from ``invariant_prior`` (a light-invariant one)."""
+        return self.config.invariant_prior > 0.0 and name in LIGHT_INVARIANT
 
     def _joint_excess(self, seen: list[float], overlap: float) -> float:
         """The joint channel's excess: the largest channel's; with ``joint = "agreeing"`` the
@@ -344,7 +347,9 @@ class ViewFit:
     def _heard(self) -> list[_ChannelFit]:
         """The channels whose misfit counts: the informative ones, those kept heard and those
         still judged by their prior."""
-        return [ch for ch in self.channels.values() if ch.informative or ch.heard or ch.own < ch.prior_views]
+        n = self.config.invariant_prior_views
+        return [ch for name, ch in self.channels.items()
+                if ch.informative or ch.heard or (self._has_prior(name) and ch.own < n)]
 
     def verdict(self) -> Verdict:
         """``misfit`` / ``uninformative`` / ``confirmed`` (see the module docstring): with

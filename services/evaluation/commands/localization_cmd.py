@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from typing import Any
 
 from lino_loc.disparity import STEREO_PRESETS
 from lino_loc.errors import LinoLocError
@@ -52,6 +53,33 @@ def check_translations(m: int) -> int:
     if m < 1 or m % 2 == 0:
         raise LinoLocError(f"--translations must be odd and positive (got {m})")
     return m
+
+
+def add_tracking_map_arguments(p: argparse.ArgumentParser) -> None:
+    """The map options of ``eval tracking`` (and of ``benchmarks/tracking_seeds.py``), read
+    back by :func:`tracking_map_settings`."""
+    p.add_argument("--step", type=float, default=0.5, help="map grid step, metres (default: the lab's 0.5)")
+    p.add_argument("--heading-step", type=float, default=10.0, help="map heading step, degrees (default 10)")
+    p.add_argument("--virtual-headings", type=int, default=1, choices=range(1, 32), metavar="N",
+                   help="map entries per survey image, turned 3 deg apart (lino_loc.virtual_views; default 1: "
+                   "the images alone; config/sim.toml's map: 5)")
+    p.add_argument("--translations", type=int, default=1,
+                   help="odd m > 1: the map also holds virtual translations every step / m "
+                   "(lino_loc.virtual_translations; default 1: none; config/sim.toml's map: 3)")
+    p.add_argument("--disparity-features", type=int, default=None,
+                   help="features of the disparity channel (default: --features; config/sim.toml's map: 5)")
+
+
+def tracking_map_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``TrackingSetup`` fields of :func:`add_tracking_map_arguments`' options, checked
+    (a one-line error for a bad value)."""
+    if args.step <= 0 or args.heading_step <= 0:
+        raise LinoLocError("--step and --heading-step must be positive")
+    check_translations(args.translations)
+    if args.disparity_features is not None and args.disparity_features < 1:
+        raise LinoLocError(f"--disparity-features must be positive (got {args.disparity_features})")
+    return {"step": args.step, "heading_step_deg": args.heading_step, "virtual_headings": args.virtual_headings,
+            "translations": args.translations, "disparity_features": args.disparity_features}
 
 
 def parse_channels(text: str) -> tuple[str, ...]:
@@ -212,16 +240,8 @@ def _tracking(args: argparse.Namespace) -> int:
     lights = tuple(c for c in args.lights.split(",") if c)
     if args.duration <= 0 or args.rate <= 0:
         raise LinoLocError("--duration and --rate must be positive")
-    if args.step <= 0 or args.heading_step <= 0:
-        raise LinoLocError("--step and --heading-step must be positive")
-    check_translations(args.translations)
-    if args.disparity_features is not None and args.disparity_features < 1:
-        raise LinoLocError(f"--disparity-features must be positive (got {args.disparity_features})")
     setup = TrackingSetup(world=args.world, features=args.features, preprocess=pre, lights=lights,
-                          step=args.step, heading_step_deg=args.heading_step,
-                          virtual_headings=args.virtual_headings, translations=args.translations,
-                          disparity_features=args.disparity_features,
-                          scene_changes=changes, duration=args.duration, rate=args.rate,
+                          **tracking_map_settings(args), scene_changes=changes, duration=args.duration, rate=args.rate,
                           particles=args.particles, j=args.j, global_start=not args.no_global,
                           compare_recovery=not args.no_recovery_comparison, kidnap=not args.no_kidnap,
                           switch_lights=_switch_lights(args.switch_lights, lights),
@@ -335,16 +355,7 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
 
     p = eval_sub.add_parser("tracking", help="a drive through the lab under other light and scene changes")
     p.add_argument("--world", default="lab")
-    p.add_argument("--step", type=float, default=0.5, help="map grid step, metres (default: the lab's 0.5)")
-    p.add_argument("--heading-step", type=float, default=10.0, help="map heading step, degrees (default 10)")
-    p.add_argument("--virtual-headings", type=int, default=1, choices=range(1, 32), metavar="N",
-                   help="map entries per survey image, turned 3 deg apart (lino_loc.virtual_views; default 1: "
-                   "the images alone; config/sim.toml's map: 5)")
-    p.add_argument("--translations", type=int, default=1,
-                   help="odd m > 1: the map also holds virtual translations every step / m "
-                   "(lino_loc.virtual_translations; default 1: none; config/sim.toml's map: 3)")
-    p.add_argument("--disparity-features", type=int, default=None,
-                   help="features of the disparity channel (default: --features; config/sim.toml's map: 5)")
+    add_tracking_map_arguments(p)
     p.add_argument("--duration", type=float, default=240.0, help="seconds of driving")
     p.add_argument("--rate", type=float, default=5.0, help="camera frames (updates) per second")
     p.add_argument("--features", type=int, default=20)
