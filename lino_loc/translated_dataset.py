@@ -32,7 +32,12 @@ from scipy.spatial import cKDTree
 
 from lino_loc.dataset import Dataset, DatasetWriter
 from lino_loc.errors import LinoLocError
-from lino_loc.virtual_translations import as_uint8, lattice_offsets, translate_survey
+from lino_loc.virtual_translations import (
+    as_uint8,
+    heading_neighbours,
+    lattice_offsets,
+    translate_survey,
+)
 
 ProgressFn = Callable[[int, int], None]
 
@@ -107,6 +112,7 @@ def translate_dataset(
         "conditions": [],
     })
     n = len(dataset)
+    near = heading_neighbours(dataset.poses, labels=dataset.conditions)  # views under one light only
     with DatasetWriter(out, meta, overwrite=overwrite, journal=True) as writer:
         done, first, fallbacks = _resume_state(writer.extras)
         resumed = len(writer)
@@ -114,11 +120,10 @@ def translate_dataset(
             progress(first, n)
         for i in range(first, n):
             grey = dataset.image(i)
-            disp = dataset.disparity(i)
-            if disp is None:
-                disp = np.full(grey.shape, np.nan, dtype=np.float32)
+            disp = _disparity(dataset, i)
+            others = [(dataset.image(k), _disparity(dataset, k), dataset.poses[k]) for k in near[i]]
             moved = translate_survey(grey[None], disp[None], dataset.poses[i][None], intrinsics, cam.baseline_m,
-                                     spacing, refinement, keep=keep)
+                                     spacing, refinement, keep=keep, neighbours=[others])
             fallbacks += moved.fallbacks
             cond = dataset.conditions[i] or None
             for k, (image, d, pose) in enumerate(zip(moved.images, moved.disparities, moved.poses, strict=True)):
@@ -131,3 +136,11 @@ def translate_dataset(
         rows_out = len(writer)
     return TranslationReport(rows_in=n, rows_out=rows_out, fallbacks=fallbacks, step=spacing,
                              refinement=int(refinement), resumed=resumed)
+
+
+def _disparity(dataset: Dataset, i: int) -> np.ndarray:
+    """Row ``i``'s sparse disparity, all NaN (no value) where the row has none."""
+    disp = dataset.disparity(i)
+    if disp is None:
+        return np.full(dataset.image(i).shape, np.nan, dtype=np.float32)
+    return disp

@@ -12,6 +12,11 @@ where the matcher gave no value by its nearest valid neighbour, then every pixel
 for a camera moved ``r`` metres to its right and ``f`` forward at the same height and heading
 (the robot moves on the floor; camera frame x right, y down, z forward). Target pixels no
 source pixel lands on (disocclusions, the border a forward or sideways move uncovers) are NaN.
+A survey holds more than one view per position: the borders a move uncovers were seen by the
+views at the neighbouring headings, which are warped the same way into the moved camera (a
+camera also turned by the heading difference, ``turn`` to the left:
+``X' = cos(turn) (X - r) + sin(turn) (Z - f)``, ``Z' = cos(turn) (Z - f) - sin(turn) (X - r)``)
+and fill the holes they cover; what no view saw is filled by the nearest landed pixel.
 
 The paper's ref. [8] (Murase & Nayar) interpolates the appearance manifold between sampled
 poses; this is the geometric alternative the depth channel makes possible.
@@ -20,7 +25,7 @@ poses; this is the geometric alternative the depth channel makes possible.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -29,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 
 from lino_loc.errors import LinoLocError
+from lino_loc.poses import wrap_angle
 
 FloatImage = NDArray[np.float32]
 
@@ -66,38 +72,53 @@ def dense_depth(disparity: ArrayLike, shape: tuple[int, int], fx: float, baselin
 
 
 def _forward_project(depth: ArrayLike, intrinsics: tuple[float, float, float, float], right_m: float,
-                     forward_m: float, min_depth_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatImage]:
+                     forward_m: float, min_depth_m: float, turn: float = 0.0, into: np.ndarray | None = None,
+                     ) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatImage]:
     """The pinhole forward projection of the module docstring with a z-buffer: for every target
     pixel some source pixel lands on, the flat index of the nearest such source pixel, the
-    target's flat index and the point's depth in the moved camera. Pixels of non-finite depth
-    do not move."""
+    target's flat index and the point's depth in the moved camera. ``turn`` (rad, REP-103: to
+    the left) turns the moved camera about the vertical axis: ``X' = cos(turn) (X - r) +
+    sin(turn) (Z - f)``, ``Z' = cos(turn) (Z - f) - sin(turn) (X - r)``. ``into`` (H * W bool):
+    only the target pixels it marks are filled. Pixels of non-finite depth do not move."""
     z = np.asarray(depth, dtype=np.float64)
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     h, w = z.shape
     v, u = np.mgrid[0:h, 0:w]
-    z2 = z - forward_m
+    x = (u - cx) * z / fx - right_m
+    zf = z - forward_m
+    c, s = math.cos(turn), math.sin(turn)
+    x2, z2 = (x, zf) if turn == 0.0 else (c * x + s * zf, c * zf - s * x)
     keep = np.flatnonzero(np.isfinite(z2) & (z2 > min_depth_m))
     zk, z2k = z.ravel()[keep], z2.ravel()[keep]
-    u2 = np.rint(fx * ((u.ravel()[keep] - cx) * zk / fx - right_m) / z2k + cx).astype(np.int64)
+    u2 = np.rint(fx * x2.ravel()[keep] / z2k + cx).astype(np.int64)
     v2 = np.rint(fy * ((v.ravel()[keep] - cy) * zk / fy) / z2k + cy).astype(np.int64)
     inside = (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
+    if into is not None:
+        inside[inside] = np.asarray(into, dtype=bool).ravel()[(v2 * w + u2)[inside]]
     source, target, depth2 = keep[inside], (v2 * w + u2)[inside], z2k[inside]
-    order = np.lexsort((depth2, target))  # by target pixel, nearest first
-    first = order[np.unique(target[order], return_index=True)[1]]
+    if target.size == 0:
+        return source, target, depth2.astype(np.float32)
+    # z-buffer: by target pixel, nearest first (the depths, all > 0, scaled into (0, 1/2] of a
+    # pixel index; one stable sort instead of a two-key lexsort), the first of each pixel kept
+    order = np.argsort(target + depth2 / (2.0 * float(depth2.max())), kind="stable")
+    ranked = target[order]
+    first = order[np.concatenate(([True], ranked[1:] != ranked[:-1]))]
     return source[first], target[first], depth2[first].astype(np.float32)
 
 
 def warp(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, float, float, float],
-         right_m: float, forward_m: float, min_depth_m: float = 0.05) -> FloatImage:
-    """The view of a camera moved ``right_m`` to its right and ``forward_m`` forward (see the
-    module docstring): ``image`` (H, W) and its ``depth`` (H, W) metres, ``intrinsics`` (fx, fy,
-    cx, cy) pixels. Float32 (H, W), NaN where nothing lands. Points that end less than
+         right_m: float, forward_m: float, min_depth_m: float = 0.05, turn: float = 0.0,
+         into: np.ndarray | None = None) -> FloatImage:
+    """The view of a camera moved ``right_m`` to its right and ``forward_m`` forward, and
+    turned ``turn`` radians to the left (see the module docstring): ``image`` (H, W) and its
+    ``depth`` (H, W) metres, ``intrinsics`` (fx, fy, cx, cy) pixels. Float32 (H, W), NaN where
+    nothing lands (or that ``into``, an (H, W) bool mask, leaves out). Points that end less than
     ``min_depth_m`` in front of the moved camera are dropped."""
     img = np.asarray(image, dtype=np.float32)
     z = np.asarray(depth, dtype=np.float64)
     if img.shape != z.shape or img.ndim != 2:
         raise LinoLocError(f"warp: image {img.shape} and depth {z.shape} must be the same 2-D shape")
-    source, target, _ = _forward_project(z, intrinsics, right_m, forward_m, min_depth_m)
+    source, target, _ = _forward_project(z, intrinsics, right_m, forward_m, min_depth_m, turn, into)
     out = np.full(img.size, np.nan, dtype=np.float32)
     out[target] = img.ravel()[source]
     return out.reshape(img.shape)
@@ -145,15 +166,61 @@ def camera_move(dx: float, dy: float, heading: float) -> tuple[float, float]:
 
 
 def translate_view(image: ArrayLike, depth: ArrayLike, intrinsics: tuple[float, float, float, float],
-                   pose: ArrayLike, target: ArrayLike) -> FloatImage | None:
+                   pose: ArrayLike, target: ArrayLike,
+                   others: Sequence[tuple[ArrayLike, ArrayLike, ArrayLike]] = ()) -> FloatImage | None:
     """The view of a robot at ``pose`` (x, y, theta) with its ``depth`` (metres, every pixel),
     as seen from the floor position ``target`` (x, y, ...) at the same heading: :func:`warp` by
-    :func:`camera_move`, holes filled by :func:`fill_nearest`; None when nothing lands."""
+    :func:`camera_move`. Its holes are filled, in order, from ``others``, views (image, depth,
+    pose) taken near ``pose`` at other headings warped to the same camera (a move uncovers the
+    image's borders, which a turned view of the same place saw), then by :func:`fill_nearest`;
+    None when nothing of ``image`` lands."""
     p = np.asarray(pose, dtype=np.float64)
     t = np.asarray(target, dtype=np.float64)
     right, forward = camera_move(float(t[0] - p[0]), float(t[1] - p[1]), float(p[2]))
     view = warp(image, depth, intrinsics, right, forward)
-    return fill_nearest(view) if np.isfinite(view).any() else None
+    if not np.isfinite(view).any():
+        return None
+    for o_image, o_depth, o_pose in others:
+        holes = ~np.isfinite(view)
+        if not holes.any():
+            break
+        q = np.asarray(o_pose, dtype=np.float64)
+        r, f = camera_move(float(t[0] - q[0]), float(t[1] - q[1]), float(q[2]))
+        moved = warp(o_image, o_depth, intrinsics, r, f, turn=float(wrap_angle(p[2] - q[2])), into=holes)
+        view[holes] = moved[holes]
+    return fill_nearest(view)
+
+
+def heading_neighbours(poses: ArrayLike, max_turn: float = math.radians(45.0),
+                       tolerance_m: float = 0.01, labels: Sequence[object] | None = None) -> list[tuple[int, ...]]:
+    """For every pose (N, 3), the indices of the poses at the same floor position (their x and
+    y rounded to ``tolerance_m``) and with the same label (e.g. the light a row was taken under;
+    default: all alike) whose heading is the nearest on its left and on its right, each at most
+    ``max_turn`` away (nearest first, ties to the lower index; fewer where the survey has
+    none): the views :func:`translate_view` fills a moved view's uncovered borders from."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if labels is not None and len(labels) != p.shape[0]:
+        raise LinoLocError(f"heading_neighbours: {len(labels)} labels for {p.shape[0]} poses")
+    label = (np.zeros(p.shape[0], dtype=np.int64) if labels is None
+             else np.unique(np.asarray([str(v) for v in labels]), return_inverse=True)[1].reshape(-1))
+    key = np.column_stack([np.round(p[:, :2] / tolerance_m), label])
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    members: dict[int, np.ndarray] = {}
+    for g in np.unique(group):
+        members[int(g)] = np.flatnonzero(group == g)
+    out: list[tuple[int, ...]] = []
+    for i in range(p.shape[0]):
+        same = members[int(group[i])]
+        d = wrap_angle(p[same, 2] - p[i, 2])
+        picks: list[tuple[float, int]] = []
+        for side in (d > 1e-9, d < -1e-9):
+            cand = np.flatnonzero(side & (np.abs(d) <= max_turn))
+            if cand.size:
+                k = cand[np.lexsort((same[cand], np.abs(d[cand])))[0]]
+                picks.append((abs(float(d[k])), int(same[k])))
+        out.append(tuple(k for _, k in sorted(picks)))
+    return out
 
 
 def as_uint8(view: ArrayLike) -> NDArray[np.uint8]:
@@ -192,17 +259,24 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
                      intrinsics: tuple[float, float, float, float], baseline_m: float, step: float,
                      refinement: int, keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None,
                      transform: Callable[[FloatImage], np.ndarray] | None = None,
+                     neighbours: Sequence[Sequence[tuple[ArrayLike, ArrayLike, ArrayLike]]] | None = None,
                      ) -> TranslatedSurvey:
     """Every survey view (``greys`` (N, H, W), its sparse disparity (N, h, w) in pixels of the
     grey image, its robot pose (N, 3)) seen from each :func:`lattice_offsets` of its cell, same
-    heading: the real view at offset (0, 0), virtual translations elsewhere, their holes filled
-    by :func:`fill_nearest`, and beside each its disparity map, moved by
+    heading: the real view at offset (0, 0), virtual translations elsewhere (their holes filled
+    as the next paragraph says), and beside each its disparity map, moved by
     :func:`warp_disparity` (its holes left as holes). ``keep(xy)`` (M, 2) -> bool (M,) drops
     positions (e.g. not free); the offsets kept depend on the position alone, so every lattice
     position holds the same headings as its survey position (the map stays a product grid of
     positions x headings, which the action evaluation's fast path needs). Where a view cannot
     be warped (its disparity has no value, or nothing lands in the moved camera) the survey
     view and its disparity stand for it, as in a map without translations.
+
+    A moved view's holes (the borders a move uncovers) are filled from the survey's views at
+    the same position and the nearest headings (:func:`translate_view`'s ``others``, each
+    warped with its own disparity's depth), the rest by :func:`fill_nearest`. Per image,
+    ``neighbours`` gives those views as (grey, disparity, pose); by default they are those of
+    :func:`heading_neighbours` among the images given.
 
     With ``transform``, ``transform(image)`` of each view is kept (e.g. the map's working
     vector), so the full-size views are never all held."""
@@ -212,30 +286,53 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
     if not (g.shape[0] == d.shape[0] == p.shape[0]):
         raise LinoLocError(f"translate_survey: {g.shape[0]} images, {d.shape[0]} disparity maps, {p.shape[0]} poses")
     offsets = lattice_offsets(step, refinement)
-    fx_baseline = float(intrinsics[0]) * baseline_m
     images: list[np.ndarray] = []
     disps: list[np.ndarray] = []
     out_poses: list[np.ndarray] = []
     fallbacks = 0
     keep_as = transform or (lambda im: im)
-    for img, disp, pose in zip(g, d, p, strict=True):
+    if neighbours is None:
+        neighbours = [[(g[k], d[k], p[k]) for k in near] for near in heading_neighbours(p)]
+    elif len(neighbours) != p.shape[0]:
+        raise LinoLocError(f"translate_survey: {len(neighbours)} neighbour lists for {p.shape[0]} images")
+    for img, disp, pose, near in zip(g, d, p, neighbours, strict=True):
         targets = np.column_stack([pose[0] + offsets[:, 0], pose[1] + offsets[:, 1], np.full(len(offsets), pose[2])])
         ok = np.ones(len(targets), dtype=bool) if keep is None else np.asarray(keep(targets[:, :2]), dtype=bool)
         source = keep_as(np.asarray(img, dtype=np.float32))
         images.append(source)
         disps.append(disp)
         out_poses.append(targets[0])
-        depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m) if np.isfinite(disp).any() else None
-        small = scaled_intrinsics(intrinsics, img.shape, disp.shape)
-        for t in targets[1:][ok[1:]]:
-            view = None if depth is None else translate_view(img, depth, intrinsics, pose, t)
-            if view is None:
+        moved_to = targets[1:][ok[1:]]
+        for t, moved in zip(moved_to, _moved_views(img, disp, pose, moved_to, near, intrinsics, baseline_m),
+                            strict=True):
+            if moved is None:
                 fallbacks += 1
                 images.append(source)
                 disps.append(disp)
             else:
-                images.append(keep_as(view))
-                right, forward = camera_move(float(t[0] - pose[0]), float(t[1] - pose[1]), float(pose[2]))
-                disps.append(warp_disparity(disp, small, fx_baseline, right, forward))
+                images.append(keep_as(moved[0]))
+                disps.append(moved[1])
             out_poses.append(t)
     return TranslatedSurvey(np.asarray(images), np.asarray(disps, dtype=np.float32), np.asarray(out_poses), fallbacks)
+
+
+def _moved_views(img: np.ndarray, disp: np.ndarray, pose: np.ndarray, targets: np.ndarray,
+                 near: Sequence[tuple[ArrayLike, ArrayLike, ArrayLike]], intrinsics: tuple[float, float, float, float],
+                 baseline_m: float) -> list[tuple[FloatImage, FloatImage] | None]:
+    """:func:`translate_survey` for one survey view: per target its (view, moved disparity), or
+    None where it cannot be warped."""
+    out: list[tuple[FloatImage, FloatImage] | None] = []
+    if targets.shape[0] == 0:
+        return out
+    depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m) if np.isfinite(disp).any() else None
+    small = scaled_intrinsics(intrinsics, img.shape, disp.shape)
+    others = [(np.asarray(o_img), dense_depth(o_disp, img.shape, intrinsics[0], baseline_m), o_pose)
+              for o_img, o_disp, o_pose in near if np.isfinite(np.asarray(o_disp)).any()]
+    for t in targets:
+        view = None if depth is None else translate_view(img, depth, intrinsics, pose, t, others)
+        if view is None:
+            out.append(None)
+            continue
+        right, forward = camera_move(float(t[0] - pose[0]), float(t[1] - pose[1]), float(pose[2]))
+        out.append((view, warp_disparity(disp, small, float(intrinsics[0]) * baseline_m, right, forward)))
+    return out

@@ -300,3 +300,19 @@ def test_virtual_translations_fill_the_survey_cells(capsys: pytest.CaptureFixtur
         assert main(["eval", "active", *TINY, *bad]) == 2
         err = capsys.readouterr().err
         assert text in err and "Traceback" not in err
+
+
+def test_the_strategies_option_runs_the_lattice_strategy(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--strategies lattice,random``: the first strategy is compared with the others, the
+    lattice strategy's settings are reported; an unknown or repeated strategy is a one-line
+    error."""
+    assert main(["eval", "active", "--json", *TINY, "--translations", "3", "--channels", "intensity",
+                 "--strategies", "lattice,random"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert list(res["strategies"]) == ["lattice", "random"]
+    assert "lattice-random" in res["comparisons"]
+    assert res["setup"]["lattice_gate"] == 0.5 and res["setup"]["view_match"]["radius"] == 0.5
+    for bad in ("entropy,nope", "random,random", ","):
+        assert main(["eval", "active", *TINY, "--strategies", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--strategies" in err and "Traceback" not in err

@@ -14,6 +14,7 @@ from lino_loc.virtual_translations import (
     camera_move,
     dense_depth,
     fill_nearest,
+    heading_neighbours,
     lattice_offsets,
     scaled_intrinsics,
     translate_survey,
@@ -188,6 +189,141 @@ def test_a_rendered_view_translated_is_nearer_the_real_view_than_the_survey_view
         d_virtual = np.linalg.norm(vec(real) - vec(virtual))
         d_survey = np.linalg.norm(vec(real) - vec(src.grey))
         assert d_virtual < 0.6 * d_survey, (k, d_virtual, d_survey)
+
+
+def test_a_turned_camera_sees_a_point_at_its_bearing_plus_the_turn() -> None:
+    """A pure turn of the camera to the left by d: a point at bearing a (to the right of the
+    optical axis) appears at bearing a + d, u' = cx + fx tan(a + d), whatever its depth."""
+    fx, _, cx, _ = INTR
+    depth = np.full((48, 64), 3.0)
+    depth[:, 40:] = 7.0
+    image = np.tile(np.arange(64, dtype=np.float32), (48, 1))  # each column its own value
+    for d in (math.radians(5.0), math.radians(-8.0)):
+        out = warp(image, depth, INTR, 0.0, 0.0, turn=d)
+        for u in (10, 31, 45, 55):
+            a = math.atan((u - cx) / fx)
+            u2 = int(round(cx + fx * math.tan(a + d)))
+            if 0 <= u2 < 64:
+                assert out[24, u2] == u, (d, u, u2, out[24, u2])
+
+
+def test_a_turn_and_a_move_together_equal_the_move_seen_by_a_turned_camera() -> None:
+    """A view warped into a camera moved (r, f) and turned by d lands every point where the
+    world-frame geometry puts it: checked against the same point projected by hand."""
+    fx, fy, cx, cy = INTR
+    depth = np.full((48, 64), 4.0)
+    image = np.arange(48 * 64, dtype=np.float32).reshape(48, 64)
+    r, f, d = 0.2, 0.3, math.radians(10.0)  # forward: each point its own target pixel
+    out = warp(image, depth, INTR, r, f, turn=d)
+    for u, v in ((20, 10), (40, 30), (31, 24)):
+        x, z = (u - cx) * 4.0 / fx - r, 4.0 - f
+        x2, z2 = math.cos(d) * x + math.sin(d) * z, math.cos(d) * z - math.sin(d) * x
+        u2, v2 = int(round(fx * x2 / z2 + cx)), int(round(fy * (v - cy) * 4.0 / fy / z2 + cy))
+        assert out[v2, u2] == image[v, u]
+
+
+def test_the_z_buffer_keeps_the_nearest_point_of_every_pixel_and_the_mask_only_selects() -> None:
+    """Against a direct two-key ranking (target pixel, then depth, then source index): the
+    nearest landed point of every pixel, ties to the lower source index; with ``into`` the same
+    pixels' values, NaN elsewhere."""
+    rng = np.random.default_rng(3)
+    depth = np.round(rng.uniform(1.0, 3.0, (48, 64)), 1)  # many equal depths: ties
+    image = rng.uniform(0.0, 255.0, (48, 64)).astype(np.float32)
+    for r, f, d in ((0.3, -0.4, 0.0), (-0.2, 0.5, math.radians(12.0))):
+        out = warp(image, depth, INTR, r, f, turn=d)
+        fx, fy, cx, cy = INTR
+        v, u = np.mgrid[0:48, 0:64]
+        x, z = (u - cx) * depth / fx - r, depth - f
+        x2, z2 = math.cos(d) * x + math.sin(d) * z, math.cos(d) * z - math.sin(d) * x
+        u2 = np.rint(fx * x2 / z2 + cx).astype(int).ravel()
+        v2 = np.rint(fy * ((v - cy) * depth / fy) / z2 + cy).astype(int).ravel()
+        ok = np.flatnonzero((u2 >= 0) & (u2 < 64) & (v2 >= 0) & (v2 < 48) & (z2.ravel() > 0.05))
+        tgt = v2[ok] * 64 + u2[ok]
+        order = np.lexsort((ok, z2.ravel()[ok], tgt))
+        first = order[np.unique(tgt[order], return_index=True)[1]]
+        expected = np.full(48 * 64, np.nan, dtype=np.float32)
+        expected[tgt[first]] = image.ravel()[ok[first]]
+        assert np.array_equal(out.ravel(), expected, equal_nan=True)
+        mask = rng.random((48, 64)) < 0.3
+        masked = warp(image, depth, INTR, r, f, turn=d, into=mask)
+        assert np.array_equal(masked[mask], out[mask], equal_nan=True) and np.isnan(masked[~mask]).all()
+
+
+def test_the_borders_a_move_uncovers_are_filled_from_the_neighbouring_headings() -> None:
+    """Moving back from a wall uncovers the image's borders; a view of the same place turned
+    15 deg saw the wall there, so those holes take its values, not the nearest pixel's. Without
+    the turned views the result is the nearest fill, as before."""
+    depth = np.full((48, 64), 2.0)
+    ahead = np.full((48, 64), 100.0, dtype=np.float32)
+    turned = np.full((48, 64), 200.0, dtype=np.float32)
+    pose = np.array([0.0, 0.0, 0.0])
+    target = np.array([-0.5, 0.0, 0.0])  # 0.5 m back (heading 0 looks along +x)
+    alone = translate_view(ahead, depth, INTR, pose, target)
+    assert alone is not None and np.all(alone == 100.0)
+    q = np.array([0.0, 0.0, math.radians(15.0)])  # turned to the left: it saw the left border
+    filled = translate_view(ahead, depth, INTR, pose, target, [(turned, depth, q)])
+    assert filled is not None
+    holes = ~np.isfinite(warp(ahead, depth, INTR, *camera_move(-0.5, 0.0, 0.0)))
+    assert holes[:, :3].all() and holes[:, -3:].all()
+    assert np.all(filled[~holes] == 100.0)  # what the view itself saw is kept
+    assert np.all(filled[20:28, 0] == 200.0)  # the left border: from the turned view
+    assert np.all(filled[20:28, -1] == 100.0)  # the right border: no view saw it, nearest fill
+
+
+def test_heading_neighbours_are_the_nearest_headings_each_side_at_the_same_place_and_light() -> None:
+    headings = np.radians(np.arange(-180.0, 180.0, 15.0))
+    poses = np.array([[x, 0.0, h] for x in (0.0, 0.75) for h in headings])
+    near = heading_neighbours(poses)
+    assert len(near) == 48
+    # heading index 0 (-180 deg) at x = 0: the neighbours wrap around (+165 deg and -165 deg)
+    assert sorted(near[0]) == [1, 23]
+    assert sorted(near[30]) == [29, 31] and all(24 <= k < 48 for k in near[30])
+    # another light at the same place is not a neighbour; a lone heading has none
+    labels = ["tube"] * 48
+    labels[1] = "bulb"
+    assert sorted(heading_neighbours(poses, labels=labels)[0]) == [2, 23]
+    assert heading_neighbours(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, math.radians(60.0)]])) == [(), ()]
+    with pytest.raises(LinoLocError, match="labels"):
+        heading_neighbours(poses, labels=["tube"])
+
+
+def test_a_rendered_view_moved_back_is_nearer_the_real_view_with_the_turned_fill() -> None:
+    """The simulated office, the product's path (sparse stereo depth for every view): a survey
+    view moved 25 cm back, its uncovered borders filled from the survey's views 15 deg either
+    side, is nearer (pixels at the map's working size) to the real view there than the same
+    move filled by the nearest pixel alone."""
+    from drivers.sim.renderer import CameraModel, Renderer
+    from drivers.sim.world import load_world
+    from lino_loc.disparity import StereoConfig, compute_disparity, downsample_sparse
+    from lino_loc.preprocessing import preprocess, to_vector
+
+    renderer = Renderer(load_world("office"), camera=CameraModel(width=160, height=120))
+    intr = renderer.camera.intrinsics()
+    size = (40, 30)
+
+    def view(pose: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        r = renderer.render(*map(float, pose), stereo=True, rng=np.random.default_rng((k, 0)))
+        disp = downsample_sparse(compute_disparity(r.left, r.right, StereoConfig()), size)
+        return r.grey, dense_depth(disp, r.grey.shape, intr[0], renderer.camera.baseline_m)
+
+    def vec(im: np.ndarray) -> np.ndarray:
+        return to_vector(preprocess(as_uint8(im), "none"), size)
+
+    gains = []
+    for k, (x, y, th) in enumerate([(2.0, 1.5, 0.3), (4.0, 1.2, 2.0), (3.0, 2.0, -1.0)]):
+        pose = np.array([x, y, th])
+        target = pose - 0.25 * np.array([math.cos(th), math.sin(th), 0.0])
+        grey, depth = view(pose, k)
+        others = []
+        for turn in (1.0, -1.0):
+            q = pose + np.array([0.0, 0.0, turn * math.radians(15.0)])
+            others.append((*view(q, 10 * k + int(turn > 0)), q))
+        real = vec(renderer.render(*map(float, target), stereo=False, rng=np.random.default_rng((k, 9))).grey)
+        plain = translate_view(grey, depth, intr, pose, target)
+        filled = translate_view(grey, depth, intr, pose, target, others)
+        assert plain is not None and filled is not None
+        gains.append(np.linalg.norm(real - vec(filled)) / np.linalg.norm(real - vec(plain)))
+    assert np.mean(gains) < 0.9 and max(gains) < 1.0, gains
 
 
 def test_a_rendered_disparity_map_moved_is_nearer_the_disparity_there() -> None:

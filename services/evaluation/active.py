@@ -59,6 +59,7 @@ from lino_loc.pan_reliability import PanReliability
 from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel
+from lino_loc.view_match import ViewLattice
 from lino_loc.virtual_views import crop_columns
 from services.evaluation import active_stats
 from services.evaluation.active_bounds import feature_diagnostics, ideal_hits, map_oracle_hits
@@ -159,7 +160,8 @@ def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarr
     model_d = None if disparity_features is None else setup.sensor_model_for(entries, disparity_features, model.bounds)
     _ctx.update(setup=setup, world=world, model=model, model_d=model_d,
                 evaluator=action_evaluator(model, setup.active), map_poses=map_poses,
-                map_table=MapTable(entries, map_features) if "map_match" in setup.decisions else None)
+                map_table=MapTable(entries, map_features) if "map_match" in setup.decisions else None,
+                lattice=ViewLattice(entries, map_features, setup.view_match) if "lattice" in setup.strategies else None)
 
 
 def _observe(fi: np.ndarray, fd: np.ndarray | None) -> tuple[Any, float]:
@@ -204,6 +206,20 @@ def _estimate(pf: AuxiliaryParticleFilter, ests: list[np.ndarray], views: list[t
     ests.append(pf.estimate().pose)
     for rule, poses in decided.items():
         poses.append(decide(rule, ests[-1], views, _ctx["map_table"]))
+
+
+def _lattice_values(pf: AuxiliaryParticleFilter, views: list[tuple[float, Any, np.ndarray]],
+                    pans: np.ndarray) -> np.ndarray | None:
+    """The ``lattice`` strategy's H(u) over the map-lattice hypotheses near the filter's
+    estimate (:meth:`lino_loc.view_match.ViewLattice.expected_entropy`), or None while less
+    than ``setup.lattice_gate`` of the particles' weight lies within the hypotheses' radius."""
+    lattice: ViewLattice = _ctx["lattice"]
+    est = pf.estimate().pose
+    near = np.hypot(pf.particles[:, 0] - est[0], pf.particles[:, 1] - est[1]) <= lattice.config.radius
+    if float(np.sum(pf.weights[near])) < _ctx["setup"].lattice_gate:
+        return None
+    taken = np.array([v[0] for v in views])
+    return lattice.expected_entropy(est, taken, np.stack([v[2] for v in views]), pans)
 
 
 def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) -> dict[str, Any]:
@@ -253,7 +269,9 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
                 snaps["start"] = (pf.particles.copy(), pf.weights.copy())
             for _ in range(setup.movements):
-                if strat == "entropy":
+                if strat == "lattice" and (b := _lattice_values(pf, views, pans)) is not None:
+                    a = int(np.argmin(np.where(np.arange(n_a) == a, np.inf, b)))
+                elif strat in ("entropy", "lattice"):
                     t0 = time.process_time()
                     values = reliability.discount(ev.evaluate(pf.particles, pf.log_weights))
                     eval_ms.append(1e3 * (time.process_time() - t0))
@@ -330,16 +348,17 @@ def success_by_band(parts: list[dict[str, Any]], strategies: tuple[str, ...], di
 
 
 def comparisons(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict[str, Any]:
-    """Paired differences of success, ``"entropy-<other>"`` for every other strategy, per
-    movement (:func:`services.evaluation.active_stats.paired_difference`: the runs of all
-    strategies start from the same particles and first pan)."""
-    if "entropy" not in strategies or not parts:
+    """Paired differences of success, ``"<first>-<other>"`` (the first strategy, ``entropy`` by
+    default, against every other), per movement
+    (:func:`services.evaluation.active_stats.paired_difference`: the runs of all strategies
+    start from the same particles and first pan)."""
+    if len(strategies) < 2 or not parts:
         return {}
-    counts = active_stats.resample_counts(len(parts), parts[0]["strategies"]["entropy"]["success"].shape[0])
+    first = strategies[0]
+    counts = active_stats.resample_counts(len(parts), parts[0]["strategies"][first]["success"].shape[0])
     out: dict[str, Any] = {"se_method": active_stats.SE_METHOD}
-    for s in strategies:
-        if s != "entropy":
-            out[f"entropy-{s}"] = active_stats.paired_difference(outcomes(parts, "entropy"), outcomes(parts, s), counts)
+    for s in strategies[1:]:
+        out[f"{first}-{s}"] = active_stats.paired_difference(outcomes(parts, first), outcomes(parts, s), counts)
     return out
 
 
@@ -542,7 +561,7 @@ def plot(result: dict[str, Any], extras: dict[str, Any], out_dir: str) -> list[s
     conds = [("none", result["strategies"])]
     if "scene_changes" in result:
         conds.append(("+".join(result["scene_changes"]["names"]), result["scene_changes"]["strategies"]))
-    colours = {"entropy": "tab:blue", "random": "tab:orange", "sweep": "tab:green"}
+    colours = {"entropy": "tab:blue", "random": "tab:orange", "sweep": "tab:green", "lattice": "tab:purple"}
     fig, axes = plt.subplots(2, len(conds), figsize=(6 * len(conds), 8), squeeze=False)
     for c, (name, strategies) in enumerate(conds):
         ax, ax2 = axes[0, c], axes[1, c]

@@ -32,8 +32,13 @@ from lino_loc.interpolated_appearance import InterpolatedSensorModel, Interpolat
 from lino_loc.motion_model import MotionModelConfig
 from lino_loc.particle_filter import FilterConfig
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig, SensorModelKind
+from lino_loc.view_match import ViewMatchConfig
 
 STRATEGIES: tuple[str, ...] = ("entropy", "random", "sweep")
+#: every strategy :func:`services.evaluation.active.run_position` knows: ``lattice`` is the
+#: entropy strategy that, once the belief is gathered near its estimate, chooses the pan by the
+#: expected entropy of the map-lattice hypotheses there (:mod:`lino_loc.view_match`)
+KNOWN_STRATEGIES: tuple[str, ...] = (*STRATEGIES, "lattice")
 
 
 def paper_sensor_model(**overrides: Any) -> SensorModelConfig:
@@ -89,6 +94,8 @@ class ActiveSetup:
     seed: int = 0
     workers: int | None = None
     strategies: tuple[str, ...] = STRATEGIES
+    view_match: ViewMatchConfig = field(default_factory=ViewMatchConfig)  # the lattice strategy's hypotheses
+    lattice_gate: float = 0.5  # the lattice strategy: weight within view_match.radius of the estimate
     snapshots: bool = True
     ideal: bool = False
     filter: dict[str, Any] = field(default_factory=dict)
@@ -151,6 +158,8 @@ class ActiveSetup:
             out["map_memory_budget_mb"] = self.map_memory_budget_mb
         if self.decisions:  # reported only when set
             out["decisions"] = list(self.decisions)
+        if "lattice" in self.strategies:  # its settings, reported when it runs
+            out.update(lattice_gate=self.lattice_gate, view_match=self.view_match.model_dump())
         if a.reliability.enabled:  # reported when on (lino_loc.pan_reliability)
             out["pan_reliability"] = a.reliability.model_dump()
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was

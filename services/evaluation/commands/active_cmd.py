@@ -20,6 +20,7 @@ from pydantic import ValidationError
 from lino_loc.errors import LinoLocError
 from services.evaluation.active import plot, run
 from services.evaluation.active_setup import (
+    KNOWN_STRATEGIES,
     STRATEGIES,
     ActiveSetup,
     paper_setup,
@@ -176,7 +177,12 @@ def _setup(args: argparse.Namespace, changes: tuple[str, ...]) -> ActiveSetup:
     unknown = [d for d in decisions if d not in DECISIONS]
     if unknown:
         raise LinoLocError(f"--decisions: unknown rule {unknown[0]!r} (known: {', '.join(DECISIONS)})")
-    experiment = dict(world=args.world, positions=args.positions, runs=args.runs, movements=args.movements,
+    strategies = tuple(x.strip() for x in args.strategies.split(",") if x.strip())
+    bad = [x for x in strategies if x not in KNOWN_STRATEGIES]
+    if bad or len(set(strategies)) != len(strategies) or len(strategies) < 1:
+        raise LinoLocError(f"--strategies: {bad[0] if bad else args.strategies!r} is not a list of distinct "
+                           f"strategies of {', '.join(KNOWN_STRATEGIES)}")
+    experiment = dict(world=args.world, strategies=strategies, positions=args.positions, runs=args.runs, movements=args.movements,
                       scene_changes=changes, seed=args.seed, workers=args.workers, ideal=args.ideal,
                       criterion_step=args.criterion_step, decisions=decisions,
                       map_memory_budget_mb=args.map_memory_budget)
@@ -265,6 +271,9 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--decisions", default="", metavar="RULES",
                    help="also judge these final decisions on the same runs, comma-separated: "
                    f"{', '.join(DECISIONS)} (services.evaluation.decision_rules)")
+    p.add_argument("--strategies", default=",".join(STRATEGIES), metavar="NAMES",
+                   help=f"the strategies compared, comma-separated, the first is the one compared with the others: "
+                   f"{', '.join(KNOWN_STRATEGIES)} (default {','.join(STRATEGIES)})")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--plot", metavar="DIR", default=None, help="write Fig. 3 and Fig. 4 PNGs here")

@@ -1,0 +1,164 @@
+"""Matching the views a standing robot took against the map's stored views near its estimate.
+
+Once the filter has found the neighbourhood, which map position the robot stands nearest to
+is a finer question than its sensor model answers: the nearest-neighbour model (section 3)
+spreads each view's likelihood over kernels 35 cm wide, while the map holds a view every
+25 cm (virtual translations) at every heading (virtual headings). With the robot standing
+still, every view taken since it stopped was taken at one pose, so the views can be compared
+jointly with the map's own views. Hypotheses are the map's lattice points h = (g, o): a map
+position g within :attr:`ViewMatchConfig.radius` of the filter's estimate and a robot heading o
+on the map's heading lattice within :attr:`ViewMatchConfig.heading_span` of it. With y(g, t)
+the map's stored features at position g and camera heading t, and views y_i taken at pans
+u_i:
+
+* cost ``c(h) = sum_i |y_i - y(g, o + u_i)|^2`` and the decision ``argmin_h c(h)`` (the map
+  oracle's rule, here in the filter's neighbourhood);
+* a Gaussian posterior over the hypotheses, ``p(h) ∝ exp(-(c(h) - c_min) / (2 s^2))``; one
+  view's squared distance to the map's view one lattice step away is the scale,
+  ``s^2 = noise * d * m`` with m the median per-feature change between neighbouring lattice
+  positions (:attr:`ViewLattice.neighbour_change`) and d the number of features (the features'
+  errors are far from independent, so the scale is the whole view's, not one feature's);
+* the expected entropy of the POSITION marginal of that posterior after a view at pan u, as
+  the paper's H(u) (section 4) with the hypotheses in place of the particles: the predicted view
+  of hypothesis h is its stored view ``y(g_h, o_h + u)``, and
+  ``H(u) = sum_h p(h) H_pos(p(. | y(g_h, o_h + u)))`` (the heading is not what a position
+  criterion judges).
+
+Pans are rounded to the heading lattice (3 deg with the product's virtual headings).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from lino_loc.poses import wrap_angle
+
+
+class ViewMatchConfig(BaseModel):
+    """Settings of :class:`ViewLattice`'s decision and action values."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    radius: float = Field(0.5, gt=0.0, description="m; map positions this close to the estimate are hypotheses")
+    heading_span: float = Field(
+        math.radians(21.0), ge=0.0, le=math.pi, description="radians; robot headings this close to the estimate's"
+    )
+    max_hypotheses: int = Field(64, ge=2, description="the most probable hypotheses kept for H(u)")
+    noise: float = Field(
+        1.0, gt=0.0, description="the views' noise variance s^2 as a fraction of the map's own change "
+        "between neighbouring lattice positions, summed over the features (module docstring)"
+    )
+
+
+class ViewLattice:
+    """The map's features as a table of positions x headings, and the matches of
+    views against it (module docstring).
+
+    ``entries`` (N, 3) are the map entries' poses, ``features`` (N, d) their features; the
+    table has G distinct positions and H headings evenly spaced from 0 (H: the most headings
+    any position has), NaN where a position lacks one."""
+
+    def __init__(self, entries: np.ndarray, features: np.ndarray, config: ViewMatchConfig | None = None) -> None:
+        e = np.asarray(entries, dtype=np.float64)
+        f = np.asarray(features, dtype=np.float64)
+        if e.ndim != 2 or e.shape[1] != 3 or f.ndim != 2 or f.shape[0] != e.shape[0]:
+            raise ValueError(f"entries (N, 3) and features (N, d) expected, got {e.shape} and {f.shape}")
+        self.config = config or ViewMatchConfig()
+        self.xy, pos_idx = np.unique(np.round(e[:, :2], 6), axis=0, return_inverse=True)
+        pos_idx = pos_idx.reshape(-1)
+        self.n_headings = int(np.bincount(pos_idx).max())
+        self.heading_step = 2.0 * math.pi / self.n_headings
+        head_idx = np.round(np.mod(e[:, 2], 2.0 * math.pi) / self.heading_step).astype(np.int64) % self.n_headings
+        self.table = np.full((self.xy.shape[0], self.n_headings, f.shape[1]), np.nan)
+        self.table[pos_idx, head_idx] = f
+        self.neighbour_change = self._neighbour_change()
+        self.s2 = self.config.noise * f.shape[1] * self.neighbour_change
+
+    def _neighbour_change(self) -> float:
+        """The median over positions and headings of ``|y(g, t) - y(g', t)|^2 / d`` with g' the
+        nearest other map position to g: how much a view changes over one lattice step (1 for
+        a map of one position)."""
+        if self.xy.shape[0] < 2:
+            return 1.0
+        _, nn = cKDTree(self.xy).query(self.xy, k=2)
+        diff = self.table[nn[:, 1]] - self.table
+        change = np.mean(diff * diff, axis=2)  # NaN where either position lacks that heading
+        change = change[np.isfinite(change)]
+        return float(np.median(change)) if change.size else 1.0
+
+    def hypotheses(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position and heading indices (C,) of the lattice points near ``estimate`` (x, y, theta)."""
+        c = self.config
+        g = np.flatnonzero(np.hypot(self.xy[:, 0] - estimate[0], self.xy[:, 1] - estimate[1]) <= c.radius)
+        heads = np.arange(self.n_headings)
+        o = heads[np.abs(wrap_angle(heads * self.heading_step - estimate[2])) <= c.heading_span + 1e-9]
+        gg, oo = np.meshgrid(g, o, indexing="ij")
+        return gg.ravel(), oo.ravel()
+
+    def _shift(self, pans: np.ndarray) -> np.ndarray:
+        return np.round(np.asarray(pans, dtype=np.float64) / self.heading_step).astype(np.int64)
+
+    def predicted(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray) -> np.ndarray:
+        """The stored views (A, C, d) of hypotheses (g, o) at camera pans ``pans`` (A,)."""
+        cols = (o[None, :] + self._shift(pans)[:, None]) % self.n_headings
+        return self.table[g[None, :], cols]
+
+    def costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
+        """``c(h)`` (C,) of the views (k, d) taken at ``pans`` (k,); inf where a stored view is missing."""
+        diff = self.predicted(g, o, pans) - np.asarray(views, dtype=np.float64)[:, None, :]
+        c = np.sum(diff * diff, axis=(0, 2))
+        return np.where(np.isnan(c), np.inf, c)
+
+    def posterior(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+        """The kept hypotheses (g, o), their log posterior (normalized) and s^2; None when no
+        hypothesis has every view."""
+        g, o = self.hypotheses(estimate)
+        if g.size == 0:
+            return None
+        v = np.atleast_2d(np.asarray(views, dtype=np.float64))
+        c = self.costs(g, o, np.atleast_1d(pans), v)
+        if not np.isfinite(c).any():
+            return None
+        c_min = float(np.min(c))
+        s2 = self.s2
+        lp = -(c - c_min) / (2.0 * s2)
+        keep = np.argsort(-lp, kind="stable")[: self.config.max_hypotheses]
+        keep = keep[np.isfinite(lp[keep])]
+        lp = lp[keep] - np.logaddexp.reduce(lp[keep])
+        return g[keep], o[keep], lp, s2
+
+    def match(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray | None:
+        """The decision: the pose (x, y, theta) of the best-matching hypothesis, None when there is none."""
+        post = self.posterior(estimate, pans, views)
+        if post is None:
+            return None
+        g, o, _, _ = post
+        return np.array([self.xy[g[0], 0], self.xy[g[0], 1], wrap_angle(o[0] * self.heading_step)])
+
+    def expected_entropy(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray,
+                         actions: np.ndarray) -> np.ndarray | None:
+        """H(u) (A,) of the hypotheses' posterior after one more view at each pan of ``actions``
+        (module docstring); None when there is no hypothesis."""
+        post = self.posterior(estimate, pans, views)
+        if post is None:
+            return None
+        g, o, lp, s2 = post
+        y = self.predicted(g, o, np.asarray(actions, dtype=np.float64))  # (A, C, d)
+        sq = np.sum(y * y, axis=2)
+        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.einsum("aid,ajd->aij", y, y)
+        d2 = np.where(np.isnan(d2), np.inf, np.maximum(d2, 0.0))
+        idx = np.arange(g.size)
+        d2[:, idx, idx] = 0.0
+        logp = lp[None, None, :] - d2 / (2.0 * s2)
+        logp -= np.logaddexp.reduce(logp, axis=2, keepdims=True)
+        _, pos = np.unique(g, return_inverse=True)
+        onehot = np.zeros((g.size, int(pos.max()) + 1))
+        onehot[np.arange(g.size), pos.reshape(-1)] = 1.0
+        q = np.exp(logp) @ onehot  # (A, C, positions): the position marginal
+        h = -np.sum(q * np.log(np.where(q > 0.0, q, 1.0)), axis=2)
+        return np.sum(np.exp(lp)[None, :] * h, axis=1)

@@ -1,0 +1,83 @@
+"""Views matched against the map's lattice near an estimate (lino_loc/view_match.py): the
+table, the decision, and the expected entropy against its closed forms."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lino_loc.view_match import ViewLattice, ViewMatchConfig
+
+HEADINGS = 8  # every 45 deg
+
+
+def _lattice(features: np.ndarray, xy: np.ndarray, config: ViewMatchConfig | None = None) -> ViewLattice:
+    """A map of positions ``xy`` (G, 2) x HEADINGS headings with ``features`` (G, HEADINGS, d)."""
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
+    entries = np.array([[x, y, t] for x, y in xy for t in h])
+    return ViewLattice(entries, features.reshape(-1, features.shape[-1]), config)
+
+
+def test_the_table_holds_every_entry_at_its_position_and_heading() -> None:
+    rng = np.random.default_rng(0)
+    xy = np.array([[0.0, 0.0], [0.25, 0.0], [0.0, 0.25]])
+    f = rng.normal(size=(3, HEADINGS, 4))
+    lat = _lattice(f, xy)
+    assert lat.n_headings == HEADINGS and math.isclose(lat.heading_step, math.pi / 4)
+    order = np.lexsort((xy[:, 1], xy[:, 0]))  # np.unique's order of the positions
+    assert np.array_equal(lat.table, f[order])
+    with pytest.raises(ValueError, match="entries"):
+        ViewLattice(np.zeros((3, 2)), np.zeros((3, 4)))
+
+
+def test_the_decision_is_the_hypothesis_whose_stored_views_were_taken() -> None:
+    rng = np.random.default_rng(1)
+    xy = np.array([[x, y] for x in (0.0, 0.25, 0.5) for y in (0.0, 0.25)])
+    f = rng.normal(size=(6, HEADINGS, 5))
+    lat = _lattice(f, xy, ViewMatchConfig(radius=0.6, heading_span=math.pi))
+    g = int(np.flatnonzero((lat.xy[:, 0] == 0.25) & (lat.xy[:, 1] == 0.25))[0])
+    o = 2
+    pans = np.array([0.0, math.pi / 2, -math.pi / 4])
+    cols = (o + np.round(pans / lat.heading_step).astype(int)) % HEADINGS
+    views = lat.table[g, cols] + 0.01 * rng.normal(size=(3, 5))
+    pose = lat.match(np.array([0.1, 0.1, 0.0]), pans, views)
+    assert pose is not None and np.allclose(pose, [0.25, 0.25, o * math.pi / 4])
+    # no map position within the radius: no decision
+    assert lat.match(np.array([9.0, 9.0, 0.0]), pans, views) is None
+
+
+def test_expected_entropy_is_log_2_where_two_places_look_alike_and_0_where_they_differ() -> None:
+    """Two positions, equally likely after a view they share; a pan where their stored views are
+    equal leaves H = log 2, a pan where they differ by many noise scales leaves H = 0."""
+    xy = np.array([[0.0, 0.0], [0.25, 0.0]])
+    f = np.zeros((2, HEADINGS, 3))
+    f[1, 2] = 1e3  # heading index 2 (90 deg): the second position looks different
+    lat = _lattice(f, xy, ViewMatchConfig(radius=0.3, heading_span=0.0, max_hypotheses=8))
+    lat.s2 = 1.0
+    est = np.array([0.1, 0.0, 0.0])
+    h = lat.expected_entropy(est, np.array([0.0]), np.zeros((1, 3)), np.array([0.0, math.pi / 2]))
+    assert h is not None
+    assert math.isclose(h[0], math.log(2.0), rel_tol=1e-9)
+    assert h[1] < 1e-9
+
+
+def test_expected_entropy_ignores_what_the_position_criterion_does_not_judge() -> None:
+    """Hypotheses that differ only in heading at one position: the position is known, H = 0 at
+    every pan, however alike their views are."""
+    xy = np.array([[0.0, 0.0]])
+    f = np.zeros((1, HEADINGS, 3))
+    lat = _lattice(f, xy, ViewMatchConfig(radius=0.3, heading_span=math.pi / 2))
+    h = lat.expected_entropy(np.zeros(3), np.array([0.0]), np.zeros((1, 3)), np.array([0.0, 1.0]))
+    assert h is not None and np.allclose(h, 0.0)
+
+
+def test_the_noise_scale_is_the_change_between_neighbouring_positions() -> None:
+    """s^2 = noise * d * the median per-feature squared change one lattice step away."""
+    xy = np.array([[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]])
+    f = np.zeros((3, HEADINGS, 2))
+    f[:, :, 0] = np.array([0.0, 1.0, 2.0])[:, None]  # one unit per step in feature 0
+    lat = _lattice(f, xy, ViewMatchConfig(noise=2.0))
+    assert math.isclose(lat.neighbour_change, 0.5)  # (1^2 + 0^2) / 2
+    assert math.isclose(lat.s2, 2.0 * 2 * 0.5)
