@@ -22,9 +22,13 @@ Usage::
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import itertools
+import multiprocessing as mp
+from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -86,14 +90,19 @@ def translate_dataset(
     keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None,
     overwrite: bool = False,
     progress: ProgressFn | None = None,
+    workers: int = 1,
 ) -> TranslationReport:
     """Write ``dataset`` seen from the lattice of its cells to the folder ``out`` (see the
     module docstring). ``refinement``: odd m >= 1 (m^2 lattice positions per cell); ``step``:
     the survey's spacing (default :func:`survey_spacing`); ``keep(xy)`` (M, 2) -> bool (M,)
     drops lattice positions (e.g. outside a floor plan's free space; default: all kept).
     ``progress(done, total)`` per source row. An ``out`` holding an interrupted run's journal
-    is continued (unless ``overwrite``)."""
+    is continued (unless ``overwrite``). ``workers`` > 1 warps the rows in that many forked
+    processes (where the platform can fork); the rows are written in order and are the same
+    bytes as with one."""
     lattice_offsets(1.0, refinement)  # the refinement's check, before anything is written
+    if workers < 1:
+        raise LinoLocError(f"workers must be at least 1 (got {workers})")
     cam = dataset.meta.camera
     if not dataset.has_disparity:
         raise LinoLocError(f"{dataset.root}: no disparity column; virtual translations need the survey's "
@@ -112,30 +121,96 @@ def translate_dataset(
         "conditions": [],
     })
     n = len(dataset)
-    near = heading_neighbours(dataset.poses, labels=dataset.conditions)  # views under one light only
+    job = _Job(dataset, intrinsics, float(cam.baseline_m), spacing, int(refinement), keep,
+               heading_neighbours(dataset.poses, labels=dataset.conditions))  # views under one light only
     with DatasetWriter(out, meta, overwrite=overwrite, journal=True) as writer:
         done, first, fallbacks = _resume_state(writer.extras)
         resumed = len(writer)
         if progress and first:
             progress(first, n)
-        for i in range(first, n):
-            grey = dataset.image(i)
-            disp = _disparity(dataset, i)
-            others = [(dataset.image(k), _disparity(dataset, k), dataset.poses[k]) for k in near[i]]
-            moved = translate_survey(grey[None], disp[None], dataset.poses[i][None], intrinsics, cam.baseline_m,
-                                     spacing, refinement, keep=keep, neighbours=[others])
-            fallbacks += moved.fallbacks
+        for i, row in _moved_rows(job, range(first, n), workers):
+            fallbacks += row.fallbacks
             cond = dataset.conditions[i] or None
-            for k, (image, d, pose) in enumerate(zip(moved.images, moved.disparities, moved.poses, strict=True)):
+            for k, (image, d, pose) in enumerate(zip(row.images, row.disparities, row.poses, strict=True)):
                 if (i, k) in done:
                     continue
-                writer.add(as_uint8(image), pose, condition=cond, disparity=d,
-                           extra={"source": i, "offset": k, "fallbacks": moved.fallbacks})
+                writer.add(image, pose, condition=cond, disparity=d,
+                           extra={"source": i, "offset": k, "fallbacks": row.fallbacks})
             if progress:
                 progress(i + 1, n)
         rows_out = len(writer)
     return TranslationReport(rows_in=n, rows_out=rows_out, fallbacks=fallbacks, step=spacing,
                              refinement=int(refinement), resumed=resumed)
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What warping one source row needs: the dataset, its camera, the lattice and each row's
+    heading neighbours."""
+
+    dataset: Dataset
+    intrinsics: tuple[float, float, float, float]
+    baseline_m: float
+    step: float
+    refinement: int
+    keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None
+    near: list[tuple[int, ...]]
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One source row seen from its lattice: uint8 views, their disparities and poses."""
+
+    images: NDArray[np.uint8]
+    disparities: NDArray[np.float32]
+    poses: NDArray[np.float64]
+    fallbacks: int
+
+
+def _moved_row(job: _Job, i: int) -> _Row:
+    """Source row ``i`` seen from the lattice of its cell, its holes filled from its heading
+    neighbours (:func:`lino_loc.virtual_translations.translate_survey`)."""
+    ds = job.dataset
+    others = [(ds.image(k), _disparity(ds, k), ds.poses[k]) for k in job.near[i]]
+    moved = translate_survey(ds.image(i)[None], _disparity(ds, i)[None], ds.poses[i][None], job.intrinsics,
+                             job.baseline_m, job.step, job.refinement, keep=job.keep, neighbours=[others])
+    return _Row(np.stack([as_uint8(im) for im in moved.images]), moved.disparities, moved.poses, moved.fallbacks)
+
+
+_WORKER_JOB: _Job | None = None  # set in each forked worker by _set_worker_job
+
+
+def _set_worker_job(job: _Job) -> None:
+    global _WORKER_JOB  # noqa: PLW0603 - one job per worker process
+    _WORKER_JOB = job
+
+
+def _worker_row(i: int) -> _Row:
+    assert _WORKER_JOB is not None
+    return _moved_row(_WORKER_JOB, i)
+
+
+def _moved_rows(job: _Job, rows: range, workers: int) -> Iterator[tuple[int, _Row]]:
+    """(row, its lattice views) in row order: in this process, or in ``workers`` forked processes
+    with at most two rows per worker in flight (the parent writes while they warp, and the
+    views waiting to be written stay bounded). The job reaches the workers by fork, not by
+    pickling (``keep`` may be a closure)."""
+    if workers == 1 or len(rows) < 2 or "fork" not in mp.get_all_start_methods():
+        for i in rows:
+            yield i, _moved_row(job, i)
+        return
+    with mp.get_context("fork").Pool(workers, initializer=_set_worker_job, initargs=(job,)) as pool:
+        pending: deque[tuple[int, Any]] = deque()
+        todo = iter(rows)
+        for i in itertools.islice(todo, 2 * workers):
+            pending.append((i, pool.apply_async(_worker_row, (i,))))
+        while pending:
+            i, result = pending.popleft()
+            row = result.get()
+            nxt = next(todo, None)
+            if nxt is not None:
+                pending.append((nxt, pool.apply_async(_worker_row, (nxt,))))
+            yield i, row
 
 
 def _disparity(dataset: Dataset, i: int) -> np.ndarray:

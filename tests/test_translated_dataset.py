@@ -91,20 +91,57 @@ def test_an_interrupted_translation_continues_where_it_stopped(survey: Path, tmp
     assert all(np.array_equal(a.image(k), b.image(k)) for k in range(0, len(a), 5))
 
 
+def test_workers_write_the_same_rows_as_one_process(survey: Path, tmp_path: Path) -> None:
+    src = Dataset.open(survey)
+    one = translate_dataset(src, tmp_path / "one", refinement=3, workers=1)
+    two = translate_dataset(src, tmp_path / "two", refinement=3, workers=2)
+    assert (one.rows_out, one.fallbacks) == (two.rows_out, two.fallbacks)
+    a, b = Dataset.open(tmp_path / "one"), Dataset.open(tmp_path / "two")
+    assert np.array_equal(a.poses, b.poses) and a.conditions == b.conditions
+    for k in range(len(a)):
+        assert np.array_equal(a.image(k), b.image(k))
+        assert np.array_equal(a.disparity(k), b.disparity(k), equal_nan=True)
+
+
+def _stat(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command's name (state, parent pid, ...); [] when gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return []
+
+
+def _children(pid: int) -> set[int]:
+    pids = (int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit())
+    return {c for c in pids if _stat(c)[1:2] == [str(pid)]}
+
+
+def _alive(pid: int) -> bool:
+    state = _stat(pid)[:1]
+    return bool(state) and state != ["Z"]
+
+
 def test_kill_9_keeps_the_rows_written(survey: Path, tmp_path: Path) -> None:
-    """The command killed by SIGKILL mid-run: the journal keeps every row; run again, the
-    folder holds the same rows as an uninterrupted run."""
+    """The command killed by SIGKILL mid-run, its two warping processes with it: the journal
+    keeps every row and the workers exit; run again, the folder holds the same rows as an
+    uninterrupted run."""
     out = tmp_path / "killed"
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     cmd = [sys.executable, "-m", "services.cli", "dataset", "translate", str(survey), "--out", str(out),
-           "--refinement", "5", "--json"]
+           "--refinement", "5", "--json", "--workers", "2"]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     journal = out / JOURNAL_FILE
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and (not journal.is_file() or journal.read_text().count("\n") < 30):
         time.sleep(0.02)
+    workers = _children(proc.pid)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
+    assert len(workers) == 2
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.05)
+    assert not any(_alive(w) for w in workers)  # no orphaned worker keeps warping
     rows_before = journal.read_text().count('"row"')
     assert rows_before >= 29 and not (out / "dataset.json").exists()
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
@@ -123,7 +160,8 @@ def test_bad_requests_get_one_line(survey: Path, tmp_path: Path, capsys: pytest.
         w.add(np.zeros((48, 64), np.uint8), (1.0, 0.0, 0.0))
     for args, text in (([str(survey), "--out", str(tmp_path / "a"), "--refinement", "2"], "odd"),
                        ([str(nodisp), "--out", str(tmp_path / "b")], "no disparity column"),
-                       ([str(survey), "--out", str(tmp_path / "c"), "--step", "-1"], "step must be positive")):
+                       ([str(survey), "--out", str(tmp_path / "c"), "--step", "-1"], "step must be positive"),
+                       ([str(survey), "--out", str(tmp_path / "d"), "--workers", "0"], "workers must be at least 1")):
         assert main(["dataset", "translate", *args]) == 2
         err = capsys.readouterr().err
         assert text in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

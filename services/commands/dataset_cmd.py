@@ -7,7 +7,7 @@
   ``ok``, and with ``--json`` the list ``problems`` too).
 - ``lino-loc dataset import-tum SEQUENCE --out DATASET``: the converted folder passes the
   same checks, or the command fails with the first problem.
-- ``lino-loc dataset translate DATASET --out DATASET2 [--refinement 3] [--step S]``: every row
+- ``lino-loc dataset translate DATASET --out DATASET2 [--refinement 3] [--step S] [--workers N]``: every row
   also seen from the lattice every ``step / refinement`` inside its survey cell, by virtual
   translations with its own stereo disparity (:mod:`lino_loc.translated_dataset`); an
   interrupted run continues when started again. ``lino-loc map build DATASET2`` makes the map.
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from lino_loc.dataset import Dataset, dataset_problems, require_valid
@@ -69,7 +70,7 @@ def _translate(args: argparse.Namespace) -> int:
     bar = Progress("dataset translate")
     try:
         report = translate_dataset(Dataset.open(args.dataset), args.out, args.refinement, step=args.step,
-                                   overwrite=args.overwrite, progress=bar.update)
+                                   overwrite=args.overwrite, progress=bar.update, workers=args.workers)
     finally:
         bar.close()
     summary = {"out": str(args.out), "rows_in": report.rows_in, "rows_out": report.rows_out,
@@ -100,6 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="odd m: views every step / m inside each survey cell (default %(default)s)")
     p.add_argument("--step", type=float, default=None,
                    help="the survey's spacing, metres (default: the median distance between neighbouring positions)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="processes warping the rows (default: the CPUs, %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     p.add_argument("--json", action="store_true", help="one JSON object on one line")
     p.set_defaults(func=_translate)
