@@ -38,6 +38,22 @@ from scipy.spatial import cKDTree
 from lino_loc.poses import wrap_angle
 
 
+def views_by_position(entries: np.ndarray, map_features: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The map's entries as a table: the distinct map positions (G, 2), their features
+    (G, H, d) at H headings evenly spaced from 0 (NaN where a position lacks one) and the
+    heading spacing (rad). H is the number of distinct headings at the richest position
+    (24 for a 15 deg survey, 120 with virtual headings every 3 deg)."""
+    e = np.asarray(entries, dtype=np.float64)
+    xy, pos_idx = np.unique(np.round(e[:, :2], 6), axis=0, return_inverse=True)
+    n_head = int(np.bincount(pos_idx.ravel()).max())
+    step = 2.0 * math.pi / n_head
+    head_idx = np.round(np.mod(e[:, 2], 2.0 * math.pi) / step).astype(np.int64) % n_head
+    f = np.asarray(map_features, dtype=np.float64)
+    table = np.full((xy.shape[0], n_head, f.shape[1]), np.nan)
+    table[pos_idx.ravel(), head_idx] = f
+    return xy, table, step
+
+
 class ViewMatchConfig(BaseModel):
     """Settings of :class:`ViewLattice`'s decision and action values."""
 
@@ -68,13 +84,8 @@ class ViewLattice:
         if e.ndim != 2 or e.shape[1] != 3 or f.ndim != 2 or f.shape[0] != e.shape[0]:
             raise ValueError(f"entries (N, 3) and features (N, d) expected, got {e.shape} and {f.shape}")
         self.config = config or ViewMatchConfig()
-        self.xy, pos_idx = np.unique(np.round(e[:, :2], 6), axis=0, return_inverse=True)
-        pos_idx = pos_idx.reshape(-1)
-        self.n_headings = int(np.bincount(pos_idx).max())
-        self.heading_step = 2.0 * math.pi / self.n_headings
-        head_idx = np.round(np.mod(e[:, 2], 2.0 * math.pi) / self.heading_step).astype(np.int64) % self.n_headings
-        self.table = np.full((self.xy.shape[0], self.n_headings, f.shape[1]), np.nan)
-        self.table[pos_idx, head_idx] = f
+        self.xy, self.table, self.heading_step = views_by_position(e, f)
+        self.n_headings = self.table.shape[1]
         self.neighbour_change = self._neighbour_change()
         self.s2 = self.config.noise * f.shape[1] * self.neighbour_change
 

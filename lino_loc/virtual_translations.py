@@ -204,11 +204,9 @@ def heading_neighbours(poses: ArrayLike, max_turn: float = math.radians(45.0),
     label = (np.zeros(p.shape[0], dtype=np.int64) if labels is None
              else np.unique(np.asarray([str(v) for v in labels]), return_inverse=True)[1].reshape(-1))
     key = np.column_stack([np.round(p[:, :2] / tolerance_m), label])
-    _, group = np.unique(key, axis=0, return_inverse=True)
+    _, group, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     group = group.reshape(-1)
-    members: dict[int, np.ndarray] = {}
-    for g in np.unique(group):
-        members[int(g)] = np.flatnonzero(group == g)
+    members = np.split(np.argsort(group, kind="stable"), np.cumsum(count)[:-1])  # each group's rows, ascending
     out: list[tuple[int, ...]] = []
     for i in range(p.shape[0]):
         same = members[int(group[i])]
@@ -324,12 +322,14 @@ def _moved_views(img: np.ndarray, disp: np.ndarray, pose: np.ndarray, targets: n
     out: list[tuple[FloatImage, FloatImage] | None] = []
     if targets.shape[0] == 0:
         return out
-    depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m) if np.isfinite(disp).any() else None
+    if not np.isfinite(disp).any():  # no depth: every target falls back to the survey view
+        return [None] * targets.shape[0]
+    depth = dense_depth(disp, img.shape, intrinsics[0], baseline_m)
     small = scaled_intrinsics(intrinsics, img.shape, disp.shape)
     others = [(np.asarray(o_img), dense_depth(o_disp, img.shape, intrinsics[0], baseline_m), o_pose)
               for o_img, o_disp, o_pose in near if np.isfinite(np.asarray(o_disp)).any()]
     for t in targets:
-        view = None if depth is None else translate_view(img, depth, intrinsics, pose, t, others)
+        view = translate_view(img, depth, intrinsics, pose, t, others)
         if view is None:
             out.append(None)
             continue

@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 
-from services.evaluation.active_bounds import map_oracle_success, sweep_order, views_by_position
+from lino_loc.view_match import views_by_position
+from services.evaluation.active_bounds import map_oracle_success, sweep_order
 from services.evaluation.active_setup import ActiveSetup, paper_active_vision
 
 N_HEAD = 24  # 15 deg headings

@@ -23,6 +23,7 @@ import numpy as np
 from lino_loc.metrics import nearest_map_index, success, success_pose
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel
+from lino_loc.view_match import views_by_position
 from services.evaluation.active_setup import ActiveSetup
 
 
@@ -104,21 +105,6 @@ def sweep_order(setup: ActiveSetup, pos: int, run: int, n_actions: int) -> list[
     first pan is drawn as :func:`services.evaluation.active.run_position` draws it)."""
     a0 = int(np.random.default_rng((setup.seed, pos, run, 1)).integers(n_actions))
     return [(a0 + setup.sweep_stride * k) % n_actions for k in range(n_actions)]
-
-
-def views_by_position(entries: np.ndarray, map_features: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """The map's entries as a table: the distinct map positions (G, 2), their features
-    (G, H, d) at H headings evenly spaced from 0 (NaN where a position lacks one) and the
-    heading spacing (rad). H is the number of distinct headings at the richest position
-    (24 for a 15 deg survey, 120 with virtual headings every 3 deg)."""
-    e = np.asarray(entries, dtype=np.float64)
-    xy, pos_idx = np.unique(np.round(e[:, :2], 6), axis=0, return_inverse=True)
-    n_head = int(np.bincount(pos_idx.ravel()).max())
-    step = 2.0 * math.pi / n_head
-    head_idx = np.round(np.mod(e[:, 2], 2.0 * math.pi) / step).astype(np.int64) % n_head
-    table = np.full((xy.shape[0], n_head, map_features.shape[1]), np.nan)
-    table[pos_idx.ravel(), head_idx] = map_features
-    return xy, table, step
 
 
 def map_oracle_success(setup: ActiveSetup, grid: np.ndarray, entries: np.ndarray, map_features: np.ndarray,

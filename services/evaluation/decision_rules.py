@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from services.evaluation.active_bounds import views_by_position
+from lino_loc.view_match import views_by_position
 
 DECISIONS: tuple[str, ...] = ("posterior_peak", "map_match")
 PEAK_RADIUS = 0.45  # m
@@ -40,7 +40,7 @@ MATCH_RADIUS = 0.5  # m
 
 class MapTable:
     """The map's intensity features as a table of positions x headings
-    (:func:`services.evaluation.active_bounds.views_by_position`)."""
+    (:func:`lino_loc.view_match.views_by_position`)."""
 
     def __init__(self, entries: np.ndarray, features: np.ndarray) -> None:
         self.xy, self.table, self.heading_step = views_by_position(entries, features)
