@@ -172,9 +172,17 @@ def _counters_of(odo: SerialOdometry, timeout: float = 2.0):
 def test_absolute_counters_outlive_the_driver_and_show_a_board_restart(run: Run) -> None:
     """The counters a driver read before it closed (a daemon killed) and those a new driver
     reads (the next daemon) give the wheels' net travel in between, the motion included while
-    no driver ran; after a board restart, the reason instead."""
+    no driver ran; after a board restart, the reason instead. The board has been up ten
+    minutes: a restart within the clock tolerance of the board's start cannot be told from
+    no restart, by design."""
+    run.emu.set_counters(*run.emu.counters(), t_ms=600_000)
     run.settle()
     before = _counters_of(run.odo)
+    deadline = time.monotonic() + 2.0
+    while before.board_ms < 600_000 and time.monotonic() < deadline:
+        run.odo.read(timeout=0.05)
+        before = _counters_of(run.odo)
+    assert before.board_ms >= 600_000, before
     assert before.left_m_per_tick == pytest.approx(M_PER_TICK) and before.track_width == B
     assert abs(before.stamp - time.time()) < 1.0
     run.odo.close()  # the daemon is down; the board keeps counting
