@@ -54,6 +54,7 @@ from lino_loc.sensor_model import (
     SensorModelConfig,
     SensorModelKind,
 )
+from lino_loc.standing_match import StandingMatch, StandingMatchConfig
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -85,6 +86,10 @@ class LocalizerConfig(BaseModel):
     interpolation: InterpolationConfig = Field(default_factory=InterpolationConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     fusion: FusionConfig = Field(default_factory=FusionConfig)
+    standing_match: StandingMatchConfig = Field(
+        default_factory=StandingMatchConfig, description="a standing robot's views matched jointly "
+        "with the map's to place the belief (lino_loc/standing_match.py)",
+    )
 
 
 class Localizer:
@@ -124,6 +129,7 @@ class Localizer:
             if fc.weights == "adaptive" and "disparity" in self.models
             else None
         )
+        self.standing = self._standing_match(poses, channels["intensity"])
         seed_rng = rng if rng is not None else np.random.default_rng(self.config.filter.seed)
         self.filter = AuxiliaryParticleFilter(
             OdometryMotionModel(self.config.motion),
@@ -142,6 +148,18 @@ class Localizer:
         if self.config.sensor_model == "interpolated" or not callable(rows):
             return np.ones(n, dtype=bool)
         return np.asarray(rows(), dtype=bool).reshape(n)
+
+    def _standing_match(self, poses: FloatArray, intensity: ChannelLike) -> StandingMatch | None:
+        """The standing match on the map's intensity channel, None when off or when the map is
+        no lattice (said once in the log)."""
+        cfg = self.config.standing_match
+        if not cfg.enabled:
+            return None
+        match = StandingMatch.for_map(poses, np.asarray(intensity.features), cfg)
+        if isinstance(match, str):
+            log.info("standing match off: %s", match)
+            return None
+        return match
 
     def _model(
         self, poses: FloatArray, features: FloatArray
@@ -171,7 +189,10 @@ class Localizer:
     ) -> dict[str, PoseMixture] | None:
         """Each observing channel's J-nearest-neighbour mixture (section 3); None when no
         channel observes anything."""
-        fc = self.config.fusion
+        return self._mixtures(self._features(image, disparity))
+
+    def _features(self, image: np.ndarray | None, disparity: np.ndarray | None) -> dict[str, np.ndarray]:
+        """Each observing channel's features (eq. 1); a channel with a non-finite one is left out."""
         feats: dict[str, np.ndarray] = {}
         if image is not None:
             feats["intensity"] = np.asarray(
@@ -185,6 +206,11 @@ class Localizer:
             # e.g. a disparity map with too few valid pixels: that channel observes nothing
             log.debug("channel %s: non-finite features, not used for this frame", name)
             del feats[name]
+        return feats
+
+    def _mixtures(self, feats: dict[str, np.ndarray]) -> dict[str, PoseMixture] | None:
+        """The channels' mixtures for their features; None without any."""
+        fc = self.config.fusion
         if not feats:
             return None
         both = len(feats) == 2
@@ -225,7 +251,8 @@ class Localizer:
         """One localization step: odometry increment (dx, dy, dtheta) in the robot frame since
         the last update, the head's pan angle (rad) at the frame's time, the image (None when
         the camera failed: prediction only) and the optional disparity map."""
-        mixtures = self.channel_mixtures(image, disparity)
+        feats = self._features(image, disparity)
+        mixtures = self._mixtures(feats)
         self.last_novelty = (
             float(mixtures["intensity"].novelty) if mixtures and "intensity" in mixtures else math.nan
         )
@@ -236,7 +263,10 @@ class Localizer:
                                       odometry_delta, float(pan))
             mixture = self._fuse(mixtures)
         self.filter.update(odometry_delta, float(pan), mixture)
+        if self.standing is not None:
+            self.standing.step(self.filter, odometry_delta, pan, feats.get("intensity"))
         return self.estimate(stamp)
+
 
     @property
     def fusion_weights(self) -> dict[str, float] | None:
@@ -258,12 +288,16 @@ class Localizer:
         ``tracking`` at once; unconfirmed (a recalled pose) stays ``global`` until the views
         confirm it (:meth:`AuxiliaryParticleFilter.set_pose`)."""
         self.filter.set_pose(mean, cov, confirmed)
+        if self.standing is not None:
+            self.standing.reset()
         if self._adaptive is not None:
             self._adaptive.reset()
 
     def start_global(self) -> None:
         """Forget the pose: uniform belief over the mapped area and all headings."""
         self.filter.start_global()
+        if self.standing is not None:
+            self.standing.reset()
         if self._adaptive is not None:
             self._adaptive.reset()
 

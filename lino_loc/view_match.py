@@ -33,24 +33,42 @@ import math
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from lino_loc.poses import wrap_angle
 
+#: Positions closer than this (m) are one map position (:func:`views_by_position`).
+POSITION_TOLERANCE = 0.02
 
-def views_by_position(entries: np.ndarray, map_features: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+
+def views_by_position(entries: np.ndarray, map_features: np.ndarray,
+                      tolerance: float = POSITION_TOLERANCE) -> tuple[np.ndarray, np.ndarray, float]:
     """The map's entries as a table: the distinct map positions (G, 2), their features
     (G, H, d) at H headings evenly spaced from 0 (NaN where a position lacks one) and the
     heading spacing (rad). H is the number of distinct headings at the richest position
-    (24 for a 15 deg survey, 120 with virtual headings every 3 deg)."""
+    (24 for a 15 deg survey, 120 with virtual headings every 3 deg). Positions closer than
+    ``tolerance`` (m, linked in chains) are one, at their mean: a robot's survey measures each
+    view's pose, and the views of one stop differ by its odometry's drift while it turns. The
+    positions are in lexicographic (x, y) order."""
     e = np.asarray(entries, dtype=np.float64)
-    xy, pos_idx = np.unique(np.round(e[:, :2], 6), axis=0, return_inverse=True)
-    n_head = int(np.bincount(pos_idx.ravel()).max())
+    points, at = np.unique(np.round(e[:, :2], 6), axis=0, return_inverse=True)
+    at = at.reshape(-1)
+    tree = cKDTree(points)
+    _, cluster = connected_components(tree.sparse_distance_matrix(tree, tolerance, output_type="coo_matrix"),
+                                      directed=False)
+    n = int(cluster.max()) + 1
+    mean = np.zeros((n, 2))
+    np.add.at(mean, cluster[at], e[:, :2])
+    mean /= np.bincount(cluster[at], minlength=n)[:, None]
+    xy, order = np.unique(np.round(mean, 6), axis=0, return_inverse=True)
+    pos_idx = order.reshape(-1)[cluster[at]]
+    n_head = int(np.bincount(pos_idx).max())
     step = 2.0 * math.pi / n_head
     head_idx = np.round(np.mod(e[:, 2], 2.0 * math.pi) / step).astype(np.int64) % n_head
     f = np.asarray(map_features, dtype=np.float64)
     table = np.full((xy.shape[0], n_head, f.shape[1]), np.nan)
-    table[pos_idx.ravel(), head_idx] = f
+    table[pos_idx, head_idx] = f
     return xy, table, step
 
 

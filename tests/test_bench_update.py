@@ -39,6 +39,11 @@ def test_bench_json_has_the_keys(tiny) -> None:
     assert {"platform", "cpu_count", "load_average", "cpu"} <= set(m)
     assert res["image"] == [80, 60]
     assert res["target"]["median_ms_max"] == 2.0
+    st = res["standing_ms"]  # the tiny map is a lattice (1.5 m x 45 deg): the match keeps its views
+    # one view per pan on the map's 45 deg heading lattice: 7 of the 8 pans are distinct there
+    assert st["lattice"] and st["views_kept"] == 7 and st["particles"] == 1000
+    for arm in ("on", "off"):
+        assert 0.0 < st[arm]["min"] <= st[arm]["median"] <= st[arm]["p99"]
 
 
 def test_resized_map_keeps_features_consistent(tiny) -> None:

@@ -86,6 +86,8 @@ def test_eval_active_reports_the_decisions_beside_the_estimate(capsys: pytest.Ca
             d = strat["decisions"][rule]
             assert len(d["success"]) == 3 and all(0.0 <= v <= 1.0 for v in d["success"])
             assert len(d["success_ci95"]) == 3 and len(d["minus_estimate"]["difference"]) == 3
+            for key in ("mean_error_m", "median_error_m"):  # the decided poses' distance to the truth
+                assert len(d[key]) == 3 and all(np.isfinite(v) and v >= 0.0 for v in d[key])
             # the paired difference is the difference of the two success ratios
             assert np.allclose(d["minus_estimate"]["difference"],
                                np.subtract(d["success"], strat["success"]), atol=1e-4)

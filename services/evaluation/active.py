@@ -59,6 +59,7 @@ from lino_loc.pan_reliability import PanReliability
 from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
 from lino_loc.sensor_model import NearestNeighbourSensorModel
+from lino_loc.standing_match import StandingMatch
 from lino_loc.view_match import ViewLattice
 from lino_loc.virtual_views import crop_columns
 from services.evaluation import active_stats
@@ -161,7 +162,18 @@ def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarr
     _ctx.update(setup=setup, world=world, model=model, model_d=model_d,
                 evaluator=action_evaluator(model, setup.active), map_poses=map_poses,
                 map_table=MapTable(entries, map_features) if "map_match" in setup.decisions else None,
-                lattice=ViewLattice(entries, map_features, setup.view_match) if "lattice" in setup.strategies else None)
+                lattice=ViewLattice(entries, map_features, setup.view_match) if "lattice" in setup.strategies else None,
+                standing=_standing_match(setup, entries, map_features))
+
+
+def _standing_match(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarray) -> StandingMatch | None:
+    """The standing match the runs copy (None when off); the evaluation's maps are lattices."""
+    if not setup.standing_match.enabled:
+        return None
+    match = StandingMatch.for_map(entries, map_features, setup.standing_match)
+    if isinstance(match, str):
+        raise LinoLocError(f"--standing-match on: {match}")
+    return match
 
 
 def _observe(fi: np.ndarray, fd: np.ndarray | None) -> tuple[Any, float]:
@@ -239,7 +251,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
 
     zero = np.zeros(3)
     out: dict[str, Any] = {s: {"error": [], "success": [], "success_pose": [], "heading_error": [], "pans": [],
-                               "decisions": {rule: [] for rule in setup.decisions}}
+                               "decisions": {rule: [] for rule in setup.decisions},
+                               "decision_error": {rule: [] for rule in setup.decisions}}
                            for s in setup.strategies}
 
     eval_ms: list[float] = []
@@ -258,12 +271,16 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
             a = a0
             ests, seq = [], [a]
             reliability = PanReliability(setup.active.reliability)  # the entropy strategy's (a no-op when off)
+            base: StandingMatch | None = _ctx["standing"]  # fresh views for each run
+            standing = None if base is None else StandingMatch(base.lattice, setup.standing_match)
             views: list[tuple[float, Any, np.ndarray]] = []  # (pan, mixture, features): the decision rules'
             decided: dict[str, list[np.ndarray]] = {rule: [] for rule in setup.decisions}
             mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
             reliability.observe(float(pans[a]), novelty)
             pf.update(zero, float(pans[a]), mix)
             roughen(pf, setup, mix, float(pans[a]))
+            if standing is not None:
+                standing.step(pf, zero, float(pans[a]), feats[a])
             views.append((float(pans[a]), mix, feats[a]))
             _estimate(pf, ests, views, decided)
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
@@ -285,6 +302,8 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
                 reliability.observe(float(pans[a]), novelty)
                 pf.update(zero, float(pans[a]), mix)
                 roughen(pf, setup, mix, float(pans[a]))
+                if standing is not None:
+                    standing.step(pf, zero, float(pans[a]), feats[a])
                 views.append((float(pans[a]), mix, feats[a]))
                 _estimate(pf, ests, views, decided)
             est = np.asarray(ests)
@@ -296,6 +315,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
             out[strat]["pans"].append(seq)
             for rule, poses in decided.items():
                 out[strat]["decisions"][rule].append(success(np.asarray(poses), truths, _ctx["map_poses"]))
+                out[strat]["decision_error"][rule].append(position_errors(np.asarray(poses), truths))
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
                 snaps["end"] = (pf.particles.copy(), pf.weights.copy())
                 snaps["entropy_start_end"] = (
@@ -306,6 +326,7 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
         for key in ("error", "success", "success_pose", "heading_error"):
             s[key] = np.asarray(s[key])
         s["decisions"] = {rule: np.asarray(v) for rule, v in s["decisions"].items()}
+        s["decision_error"] = {rule: np.asarray(v) for rule, v in s["decision_error"].items()}
     return {"pos": pos, "strategies": out, "eval_ms": eval_ms, "snapshots": snaps, "covered": covered}
 
 
@@ -403,7 +424,10 @@ def _summarize(parts: list[dict[str, Any]], strategies: tuple[str, ...]) -> dict
             summary[s]["decisions"] = {}
             for rule in rules:
                 hits = np.stack([p["strategies"][s]["decisions"][rule] for p in parts])
+                d_err = np.concatenate([p["strategies"][s]["decision_error"][rule] for p in parts])
                 summary[s]["decisions"][rule] = {
+                    "mean_error_m": [float(v) for v in d_err.mean(axis=0)],
+                    "median_error_m": [float(v) for v in np.median(d_err, axis=0)],
                     "success": [float(v) for v in hits.mean(axis=(0, 1))],
                     "success_ci95": active_stats.intervals_json(hits, counts),
                     "minus_estimate": active_stats.paired_difference(hits, outcomes(parts, s), counts),

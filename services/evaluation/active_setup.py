@@ -32,6 +32,7 @@ from lino_loc.interpolated_appearance import InterpolatedSensorModel, Interpolat
 from lino_loc.motion_model import MotionModelConfig
 from lino_loc.particle_filter import FilterConfig
 from lino_loc.sensor_model import NearestNeighbourSensorModel, SensorModelConfig, SensorModelKind
+from lino_loc.standing_match import StandingMatchConfig
 from lino_loc.view_match import ViewMatchConfig
 
 STRATEGIES: tuple[str, ...] = ("entropy", "random", "sweep")
@@ -96,6 +97,7 @@ class ActiveSetup:
     strategies: tuple[str, ...] = STRATEGIES
     view_match: ViewMatchConfig = field(default_factory=ViewMatchConfig)  # the lattice strategy's hypotheses
     lattice_gate: float = 0.5  # the lattice strategy: weight within view_match.radius of the estimate
+    standing_match: StandingMatchConfig = field(default_factory=lambda: StandingMatchConfig(enabled=False))
     snapshots: bool = True
     ideal: bool = False
     filter: dict[str, Any] = field(default_factory=dict)
@@ -160,6 +162,8 @@ class ActiveSetup:
             out["decisions"] = list(self.decisions)
         if "lattice" in self.strategies:  # its settings, reported when it runs
             out.update(lattice_gate=self.lattice_gate, view_match=self.view_match.model_dump())
+        if self.standing_match.enabled:  # reported when on (lino_loc.standing_match)
+            out["standing_match"] = self.standing_match.model_dump()
         if a.reliability.enabled:  # reported when on (lino_loc.pan_reliability)
             out["pan_reliability"] = a.reliability.model_dump()
         if self.sensor_model != "nearest_neighbour":  # the default's report stays as it was
@@ -181,6 +185,7 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
         "active": paper_active_vision(reliability={"enabled": True}),
         "filter": {"global_proposal_fraction": 0.5},
         "motion": {"min_sigma_xy": 0.01, "min_sigma_theta": math.radians(0.5)},
+        "standing_match": StandingMatchConfig(),
     }
     return ActiveSetup(**{**method, **experiment})
 
@@ -189,7 +194,7 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
 PAPER_METHOD: dict[str, Any] = {
     "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 1, "features": 5, "disparity_features": None,
     "preprocess": "none", "channels": ("intensity",), "sensor_model": "nearest_neighbour", "particles": 150,
-    "translations": 1,
+    "translations": 1, "standing_match": StandingMatchConfig(enabled=False),
 }
 
 

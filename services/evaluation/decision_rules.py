@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from lino_loc.view_match import views_by_position
+from lino_loc.view_match import ViewLattice, ViewMatchConfig
 
 DECISIONS: tuple[str, ...] = ("posterior_peak", "map_match")
 PEAK_RADIUS = 0.45  # m
@@ -38,12 +38,13 @@ PEAK_HEADING_STEP = math.radians(2.5)
 MATCH_RADIUS = 0.5  # m
 
 
-class MapTable:
-    """The map's intensity features as a table of positions x headings
-    (:func:`lino_loc.view_match.views_by_position`)."""
+class MapTable(ViewLattice):
+    """The map's intensity features as a table of positions x headings, matched at every
+    heading within :data:`MATCH_RADIUS` (:class:`lino_loc.view_match.ViewLattice`, the
+    standing match's lattice)."""
 
     def __init__(self, entries: np.ndarray, features: np.ndarray) -> None:
-        self.xy, self.table, self.heading_step = views_by_position(entries, features)
+        super().__init__(entries, features, ViewMatchConfig(radius=MATCH_RADIUS, heading_span=math.pi))
 
 
 def posterior_peak(estimate: np.ndarray, views: list[tuple[float, Any, np.ndarray]]) -> np.ndarray:
@@ -62,20 +63,13 @@ def posterior_peak(estimate: np.ndarray, views: list[tuple[float, Any, np.ndarra
 
 
 def map_match(estimate: np.ndarray, views: list[tuple[float, Any, np.ndarray]], table: MapTable) -> np.ndarray:
-    """The ``map_match`` decision (module docstring); the estimate itself when no map position
-    lies within :data:`MATCH_RADIUS`."""
-    near = np.flatnonzero(np.hypot(table.xy[:, 0] - estimate[0], table.xy[:, 1] - estimate[1]) <= MATCH_RADIUS)
-    if near.size == 0 or not views:
+    """The ``map_match`` decision (module docstring, :meth:`lino_loc.view_match.ViewLattice.match`);
+    the estimate itself when no map position within :data:`MATCH_RADIUS` has every view."""
+    if not views:
         return np.asarray(estimate, dtype=np.float64)
-    n_head = table.table.shape[1]
-    local = table.table[near]
-    cost = np.zeros((near.size, n_head))
-    for pan, _, y in views:
-        cols = (np.arange(n_head) + int(round(pan / table.heading_step))) % n_head
-        cost += np.sum((local[:, cols, :] - y) ** 2, axis=2)
-    cost = np.where(np.isnan(cost), np.inf, cost)
-    g, o = np.unravel_index(int(np.argmin(cost)), cost.shape)
-    return np.array([table.xy[near[g], 0], table.xy[near[g], 1], o * table.heading_step])
+    pose = table.match(np.asarray(estimate, dtype=np.float64), np.array([v[0] for v in views]),
+                       np.stack([v[2] for v in views]))
+    return np.asarray(estimate, dtype=np.float64) if pose is None else pose
 
 
 def decide(rule: str, estimate: np.ndarray, views: list[tuple[float, Any, np.ndarray]],

@@ -23,6 +23,8 @@ from services.evaluation.machine import machine
 
 PARTICLES = (150, 1000, 10000)
 MAP_SIZES = (400, 4000, 40000)
+#: The head's pans (rad) of the standing robot's views (:func:`_time_standing`).
+STANDING_PANS = (0.0, 0.8, 1.6, 2.4, -0.8, -1.6, -2.4, 0.4)
 
 
 def _percentiles(ts: list[float]) -> dict[str, float]:
@@ -62,6 +64,42 @@ def _time_updates(amap: Any, n_particles: int, frames: Any, repeats: int, warmup
     out = _percentiles(wall)
     out["cpu_median"] = float(np.median(cpu) * 1000.0)
     out["updates"] = len(wall)
+    return out
+
+
+def _time_standing(amap: Any, n_particles: int, views: Any, pose: Any, repeats: int,
+                   warmup: int = 40) -> dict[str, Any]:
+    """Time updates of a STANDING robot whose head turns: ``views`` (K images) taken at
+    ``pose`` at the pans of :data:`STANDING_PANS` in turn, zero odometry, with the standing
+    match on and off (two Localizers from the same seed, interleaved, the first of each pair
+    alternating). The warm-up fills the match's views to its ``max_views``."""
+    import time
+
+    import numpy as np
+
+    from lino_loc.localizer import Localizer, LocalizerConfig
+    from lino_loc.standing_match import StandingMatchConfig
+
+    cov = np.diag([0.1**2, 0.1**2, np.radians(5.0) ** 2])
+    locs = {}
+    for arm in ("on", "off"):
+        cfg = LocalizerConfig(standing_match=StandingMatchConfig(enabled=arm == "on"))
+        cfg.filter.n_particles = n_particles
+        locs[arm] = Localizer(amap, cfg, rng=np.random.default_rng(0))
+        locs[arm].set_pose(pose, cov)
+    wall: dict[str, list[float]] = {"on": [], "off": []}
+    zero = np.zeros(3)
+    for r in range(repeats + warmup):
+        i = r % len(views)
+        for arm in (("on", "off") if r % 2 == 0 else ("off", "on")):
+            t0 = time.perf_counter()
+            locs[arm].update(zero, STANDING_PANS[i % len(STANDING_PANS)], views[i])
+            if r >= warmup:
+                wall[arm].append(time.perf_counter() - t0)
+    match = locs["on"].standing
+    out: dict[str, Any] = {"particles": n_particles, "updates": repeats,
+                           "lattice": match is not None, "views_kept": 0 if match is None else match.n_views}
+    out.update({arm: _percentiles(ts) for arm, ts in wall.items()})
     return out
 
 
@@ -114,11 +152,15 @@ def run_update_bench(
     preprocess: str | None = None,
     amap: Any = None,
     frames: Any = None,
+    standing_views: Any = None,
 ) -> dict[str, Any]:
     """The measurements of ``lino-loc bench update`` (see module docstring) as a JSON-ready dict.
 
     ``amap`` and ``frames`` (images, increments, truth) override the lab map and the rendered
-    drive (tests use tiny ones)."""
+    drive (tests use tiny ones); ``standing_views``, the standing robot's views (default: rendered
+    at the drive's first pose at :data:`STANDING_PANS`, or the first frames when ``frames`` is
+    given). ``standing_ms``: a standing robot's update at 1000 particles with the standing match
+    on and off (:func:`_time_standing`)."""
     import numpy as np
 
     try:
@@ -135,15 +177,23 @@ def run_update_bench(
         from services.evaluation.views import build_sim_maps
 
         amap = build_sim_maps("lab", 0.5, 10.0, 20, (pre,))[pre]
+    from services.evaluation.views import ViewSpec, render_grey
+
+    frames_given = frames is not None
     if frames is None:
         from drivers.sim.drive import DriveConfig, plan_drive
         from drivers.sim.world import load_world
-        from services.evaluation.views import ViewSpec, render_grey
 
         plan = plan_drive(load_world("lab"), DriveConfig(duration=8.0, camera_rate=5.0), seed=3)
         images = render_grey(ViewSpec(world="lab", lighting="tube", seed=5), plan.truth, workers=1)
         frames = (images, plan.increments, plan.truth)
     images = frames[0]
+    if standing_views is None:
+        if frames_given:
+            standing_views = images[: len(STANDING_PANS)]
+        else:
+            cams = np.array([[*frames[2][0][:2], frames[2][0][2] + pan] for pan in STANDING_PANS])
+            standing_views = render_grey(ViewSpec(world="lab", lighting="tube", seed=7), cams, workers=1)
     result: dict[str, Any] = {
         "map": {"world": "lab", "entries": len(amap), "features": int(amap.channels["intensity"].n_features),
                 "preprocess": amap.channels["intensity"].preprocess},
@@ -168,6 +218,7 @@ def run_update_bench(
         entry.update({"entries": len(m), "synthetic": synthetic, "index": model.index_kind,
                       "search_median_ms": _time_search(model, queries, 200)})
         result["map_scaling"][str(size)] = entry
+    result["standing_ms"] = _time_standing(amap, 1000, standing_views, frames[2][0], max(20, repeats // 2))
     result["target"] = {"particles": 1000, "median_ms_max": 2.0,
                         "met": bool(result["update_ms"].get("1000", {}).get("median", np.inf) <= 2.0)}
     result["machine"] = machine()

@@ -104,6 +104,8 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
     "actions": lambda s: s.active.n_actions,
     "predicted": lambda s: s.active.predicted_neighbours,
     "pan_reliability": lambda s: "on" if s.active.reliability.enabled else "off",
+    "standing_match": lambda s: "on" if s.standing_match.enabled else "off",
+    "standing_subcell": lambda s: "on" if s.standing_match.subcell else "off",
     "inject": lambda s: s.inject,
     "global_proposal": lambda s: s.filter_config().global_proposal_fraction,
     "floor_xy": lambda s: s.motion_config().min_sigma_xy,
@@ -113,7 +115,7 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
 _PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "disparity_features",
                                  "preprocess",
                                  "channels", "sensor_model", "j", "particles", "actions", "pan_reliability",
-                                 "translations")
+                                 "translations", "standing_match", "standing_subcell")
 #: Method options mapped one to one onto an ActiveSetup field.
 _FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
                            "virtual_step": "virtual_step_deg", "features": "features",
@@ -142,6 +144,11 @@ def with_options(base: ActiveSetup, given: dict[str, Any]) -> ActiveSetup:
                                        ("predicted", "predicted_neighbours")) if k in given}
     if "pan_reliability" in given:
         active["reliability"] = {**base.active.reliability.model_dump(), "enabled": given["pan_reliability"] == "on"}
+    fields: dict[str, Any] = {}
+    standing = {f: given[k] == "on" for k, f in (("standing_match", "enabled"), ("standing_subcell", "subcell"))
+                if k in given}
+    if standing:
+        fields["standing_match"] = _copy(base.standing_match, **standing)
     filt = dict(base.filter)
     if "global_proposal" in given:
         filt["global_proposal_fraction"] = given["global_proposal"]
@@ -150,7 +157,7 @@ def with_options(base: ActiveSetup, given: dict[str, Any]) -> ActiveSetup:
         motion["min_sigma_xy"] = given["floor_xy"]
     if "floor_theta" in given:
         motion["min_sigma_theta"] = math.radians(given["floor_theta"])
-    fields = {f: given[k] for k, f in _FIELDS.items() if k in given}
+    fields.update({f: given[k] for k, f in _FIELDS.items() if k in given})
     if "channels" in given:
         fields["channels"] = parse_channels(given["channels"])
     return replace(base, **fields, filter=filt, motion=motion, active=_copy(base.active, **active),
@@ -292,6 +299,12 @@ def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
     p.add_argument("--pan-reliability", choices=("on", "off"),
                    help="entropy strategy: discount H(u) at pans near views that fit no map entry, learned "
                    f"online (lino_loc.pan_reliability; default {dv['pan_reliability']})")
+    p.add_argument("--standing-match", choices=("on", "off"),
+                   help="move the belief to where the views taken so far jointly match the map's views "
+                   f"(lino_loc.standing_match, as the service does; default {dv['standing_match']})")
+    p.add_argument("--standing-subcell", choices=("on", "off"),
+                   help="the standing match places the position between the map's lattice points "
+                   f"(StandingMatchConfig.subcell; default {dv['standing_subcell']})")
     p.add_argument("--inject", type=float,
                    help="investigation: after each update replace this fraction of the particles by draws "
                    f"from the image's sensor model (default {dv['inject']:g}; 0: the filter as the service runs it)")

@@ -45,6 +45,9 @@ def _update(args: argparse.Namespace) -> int:
     for r in res["map_scaling"].values():
         print(f"  {r['entries']:>6} entries{' (synthetic)' if r['synthetic'] else ''}: median {r['median']:.2f} ms  "
               f"p99 {r['p99']:.2f} ms  search {r['search_median_ms']:.3f} ms ({r['index']})")
+    st = res["standing_ms"]
+    print(f"a standing robot, head turning, {st['particles']} particles: standing match on: median "
+          f"{st['on']['median']:.2f} ms ({st['views_kept']} views kept), off: {st['off']['median']:.2f} ms")
     return 0
 
 

@@ -1,0 +1,225 @@
+"""A standing robot's views matched jointly with the map's (lino_loc/standing_match.py): the
+views kept, the belief moved by the match, and the Localizer's use of it."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from lino_loc.localizer import Localizer, LocalizerConfig
+from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
+from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
+from lino_loc.sensor_model import Bounds, SensorModelConfig
+from lino_loc.standing_match import StandingMatch, StandingMatchConfig
+from tests.test_localizer import Channel, TinyMap, _feature_fn
+
+HEADINGS = 12  # every 30 deg
+
+
+def _lattice_map(seed: int = 0, d: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Entries (G * HEADINGS, 3) on a 25 cm lattice of 4 x 4 positions and random features."""
+    rng = np.random.default_rng(seed)
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
+    entries = np.array([[x, y, t] for x in np.arange(4) * 0.25 for y in np.arange(4) * 0.25 for t in h])
+    return entries, rng.normal(size=(entries.shape[0], d))
+
+
+def _stored(entries: np.ndarray, features: np.ndarray, xy: tuple[float, float], camera_heading: float) -> np.ndarray:
+    """The map's features at position ``xy`` and camera heading ``camera_heading``."""
+    dh = np.abs(np.angle(np.exp(1j * (entries[:, 2] - camera_heading))))
+    i = np.flatnonzero(np.isclose(entries[:, 0], xy[0]) & np.isclose(entries[:, 1], xy[1]) & (dh < 1e-6))
+    return features[int(i[0])]
+
+
+def _standing(config: StandingMatchConfig | None = None) -> tuple[StandingMatch, np.ndarray, np.ndarray]:
+    """The match on :func:`_lattice_map`, at its lattice points (random features have no
+    parabola between them: ``subcell`` off unless ``config`` says otherwise)."""
+    entries, features = _lattice_map()
+    match = StandingMatch.for_map(entries, features, config or StandingMatchConfig(subcell=False))
+    assert isinstance(match, StandingMatch)
+    return match, entries, features
+
+
+def _take_views(match: StandingMatch, entries: np.ndarray, features: np.ndarray, xy: tuple[float, float],
+                heading: float, pans: list[float], noise: float = 0.01) -> None:
+    rng = np.random.default_rng(5)
+    step = 2.0 * math.pi / HEADINGS
+    for pan in pans:
+        y = _stored(entries, features, xy, round((heading + pan) / step) * step)
+        match.observe(np.zeros(3), pan, y + noise * rng.normal(size=y.shape))
+
+
+def test_a_map_of_poses_taken_on_the_way_is_no_lattice() -> None:
+    rng = np.random.default_rng(0)
+    poses = np.column_stack([rng.uniform(0, 5, 300), rng.uniform(0, 5, 300), rng.uniform(-3, 3, 300)])
+    why = StandingMatch.for_map(poses, rng.normal(size=(300, 4)))
+    assert isinstance(why, str) and "no lattice" in why and "1.0 headings each" in why
+    assert isinstance(StandingMatch.for_map(*_lattice_map()), StandingMatch)
+
+
+def test_a_robot_survey_whose_stops_drifted_by_millimetres_is_a_lattice() -> None:
+    """Each view's measured pose differs from its stop's by the odometry's drift while the robot
+    turned (here up to 5 mm, 1 deg): the views of a stop are one position, at their mean."""
+    entries, features = _lattice_map()
+    rng = np.random.default_rng(3)
+    jittered = entries + np.column_stack([rng.uniform(-0.005, 0.005, (entries.shape[0], 2)),
+                                          rng.uniform(-0.017, 0.017, entries.shape[0])])
+    match = StandingMatch.for_map(jittered, features, StandingMatchConfig(subcell=False))
+    assert isinstance(match, StandingMatch)
+    assert match.lattice.xy.shape == (16, 2) and match.lattice.n_headings == HEADINGS
+    assert np.isfinite(match.lattice.table).all() and match.spacing == pytest.approx(0.25, abs=0.01)
+    _take_views(match, entries, features, (0.5, 0.25), 0.0, [0.0, 1.0])
+    pose = match.match(np.array([0.4, 0.3, 0.0]))
+    assert pose is not None and np.allclose(pose[:2], [0.5, 0.25], atol=0.005)
+
+
+def test_views_are_kept_while_standing_and_a_moving_base_starts_again() -> None:
+    match, _, _ = _standing(StandingMatchConfig(max_views=3, subcell=False))
+    y = np.ones(6)
+    for pan in (0.0, 0.6, 1.1, 1.6):  # 30 deg headings: four distinct pans
+        match.observe(np.zeros(3), pan, y)
+    assert match.n_views == 3 and match._pans == [0.6, 1.1, 1.6]  # the most recent
+    match.observe(np.zeros(3), 1.15, 2 * y)  # the same stored views as 1.1: replaces it
+    assert match.n_views == 3 and match._pans == [0.6, 1.6, 1.15]
+    assert np.array_equal(match._views[-1], 2 * y)
+    match.observe(np.zeros(3), 0.2, None)  # no image: nothing kept, nothing forgotten
+    match.observe(np.zeros(3), 0.2, np.full(6, np.nan))
+    assert match.n_views == 3
+    match.observe(np.array([0.0, 0.0, 1e-4]), 0.3, y)  # encoder jitter: still standing
+    assert match.n_views == 3
+    match.observe(np.array([0.05, 0.0, 0.0]), 0.3, y)  # the base moved: this view starts a new set
+    assert match.n_views == 1
+    match.reset()
+    assert match.n_views == 0 and match.match(np.zeros(3)) is None
+
+
+def test_the_views_taken_name_their_position_and_heading() -> None:
+    match, entries, features = _standing()
+    heading = 2 * math.pi / HEADINGS * 3
+    _take_views(match, entries, features, (0.5, 0.25), heading, [0.0, math.pi / 2, -math.pi / 3])
+    pose = match.match(np.array([0.4, 0.3, 0.0]))  # any heading is a candidate
+    assert pose is not None and np.allclose(pose, [0.5, 0.25, heading])
+    assert match.match(np.array([9.0, 9.0, 0.0])) is None  # no map position near the estimate
+
+
+def test_recentre_moves_the_neighbourhood_by_the_match_minus_the_estimate() -> None:
+    match, entries, features = _standing()
+    _take_views(match, entries, features, (0.5, 0.25), 0.0, [0.0, 1.0])
+    rng = np.random.default_rng(2)
+    est = np.array([0.42, 0.33, 0.1])
+    near = est + rng.normal(scale=[0.05, 0.05, 0.05], size=(80, 3))
+    far = np.column_stack([rng.uniform(3, 4, 20), rng.uniform(3, 4, 20), rng.uniform(-3, 3, 20)])
+    particles = np.vstack([near, far])
+    weights = np.full(100, 0.01)
+    moved = match.recentre(particles, weights, est)
+    assert moved is not None and match.matches == 1
+    assert np.allclose(moved[:80, :2], near[:, :2] + np.array([0.5, 0.25]) - est[:2])
+    assert np.array_equal(moved[:80, 2], near[:, 2])  # the heading is the filter's
+    assert np.array_equal(moved[80:], far)
+    # the filter has not found the neighbourhood: half the weight elsewhere is too much
+    weights = np.r_[np.full(80, 0.4 / 80), np.full(20, 0.6 / 20)]
+    assert match.recentre(particles, weights, est) is None and match.matches == 1
+
+
+def _filter(n: int = 200) -> AuxiliaryParticleFilter:
+    bounds = Bounds.from_poses(np.array([[-1.0, -1.0, 0.0], [2.0, 2.0, 0.0]]), 0.0)
+    return AuxiliaryParticleFilter(OdometryMotionModel(MotionModelConfig()), bounds, FilterConfig(n_particles=n, seed=1),
+                                   rng=np.random.default_rng(1))
+
+
+def test_step_moves_the_filter_s_belief_and_keeps_its_weights() -> None:
+    match, entries, features = _standing()
+    pf = _filter()
+    pf.set_pose([0.4, 0.35, 0.0], np.diag([0.03**2, 0.03**2, 0.02**2]))
+    weights = pf.weights
+    before = pf.particles.copy()
+    y = _stored(entries, features, (0.5, 0.25), 0.0)
+    assert match.step(pf, np.zeros(3), 0.0, y)
+    shift = pf.particles[:, :2] - before[:, :2]
+    assert np.allclose(shift, shift[0]) and np.array_equal(pf.weights, weights)
+    assert np.allclose(pf.estimate().pose[:2], [0.5, 0.25], atol=1e-9)
+    with pytest.raises(ValueError, match="poses for 200 particles"):
+        pf.move_particles(np.zeros((3, 3)))
+
+
+def test_a_driving_robot_is_never_moved() -> None:
+    """Every frame's view is kept as the first of a new set, but one view taken on the way is
+    no standing robot's: the belief stays where the filter put it."""
+    match, entries, features = _standing()
+    pf = _filter()
+    pf.set_pose([0.4, 0.35, 0.0], np.diag([0.03**2, 0.03**2, 0.02**2]))
+    before = pf.particles.copy()
+    y = _stored(entries, features, (0.5, 0.25), 0.0)
+    for _ in range(3):
+        assert not match.step(pf, np.array([0.05, 0.0, 0.0]), 0.0, y)
+        assert match.n_views == 1
+    assert np.array_equal(pf.particles, before) and match.matches == 0
+    assert match.step(pf, np.zeros(3), 0.0, y)  # it stops: the view at that pan, now a standing one's
+    assert match.n_views == 1 and match.matches == 1
+
+
+def test_a_lost_belief_forgets_the_views() -> None:
+    match, entries, features = _standing()
+    lost = SimpleNamespace(estimate=lambda: SimpleNamespace(state="lost", pose=np.zeros(3)),
+                           particles=np.zeros((4, 3)), weights=np.full(4, 0.25),
+                           move_particles=lambda p: pytest.fail("a lost belief was moved"))
+    assert not match.step(lost, np.zeros(3), 0.0, np.ones(6))
+    assert match.n_views == 0
+
+
+def _grid_world() -> tuple[TinyMap, object]:
+    """The Localizer tests' feature world on a 25 cm lattice of 12 headings."""
+    xs, ys = np.arange(0, 2.01, 0.25), np.arange(0, 2.01, 0.25)
+    ts = -np.pi + np.arange(HEADINGS) * 2 * np.pi / HEADINGS
+    X, Y, T = np.meshgrid(xs, ys, ts, indexing="ij")
+    poses = np.column_stack([X.ravel(), Y.ravel(), T.ravel()])
+    f_img = _feature_fn(16, 0)
+    proj = np.random.default_rng(9).normal(size=(10, 16)) / np.sqrt(16)
+    return TinyMap(poses, {"intensity": Channel(f_img(poses) @ proj.T, proj)}), f_img
+
+
+def test_a_standing_localizer_is_placed_by_its_views() -> None:
+    """A belief 15 cm off, the robot standing at a map position and the head turning: with the
+    match at the lattice's points the estimate is that map position; between them (the
+    default) it stays nearer than the filter alone leaves it."""
+    m, f_img = _grid_world()
+    truth = np.array([1.0, 0.75, 0.0])
+    errors = {}
+    for name, cfg in {"off": StandingMatchConfig(enabled=False), "points": StandingMatchConfig(subcell=False),
+                      "default": StandingMatchConfig()}.items():
+        loc = Localizer(m, LocalizerConfig(filter=FilterConfig(n_particles=300, seed=3),
+                                           sensor=SensorModelConfig(j=10), standing_match=cfg))
+        assert (loc.standing is not None) == cfg.enabled
+        loc.set_pose(truth + [0.12, -0.09, 0.02], np.diag([0.03**2, 0.03**2, 0.02**2]))
+        rng = np.random.default_rng(4)
+        for pan in (0.0, 0.5, 1.0, -0.5, -1.0):
+            est = loc.update(np.zeros(3), pan, f_img(truth + [0.0, 0.0, pan])[0] + rng.normal(0, 0.02, 16))
+        errors[name] = float(np.hypot(*(est.pose[:2] - truth[:2])))
+        if cfg.enabled:
+            assert loc.standing is not None and loc.standing.matches >= 1
+    assert errors["points"] < 1e-6
+    assert errors["default"] < errors["off"] and errors["off"] > 0.01, errors
+
+
+@pytest.mark.parametrize("subcell", [False, True])
+def test_subcell_places_the_position_at_the_vertex_of_a_quadratic_cost(subcell: bool) -> None:
+    """Features linear in the position (x, y) and turning with the heading: the joint cost of
+    views taken between lattice points is exactly quadratic along each axis, so the parabola's
+    vertex is the true position; without ``subcell`` the match is the nearest lattice point."""
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
+    entries = np.array([[x, y, t] for x in np.arange(5) * 0.25 for y in np.arange(5) * 0.25 for t in h])
+
+    def feats(xy: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.column_stack([xy[:, 0], xy[:, 1], 3 * np.cos(t), 3 * np.sin(t)])
+
+    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]), StandingMatchConfig(subcell=subcell))
+    assert isinstance(match, StandingMatch) and match.spacing == pytest.approx(0.25)
+    truth = np.array([0.57, 0.46])  # nearest lattice point (0.5, 0.5)
+    for pan in (0.0, math.pi / 2, -math.pi / 3):
+        match.observe(np.zeros(3), pan, feats(truth[None], np.array([h[2] + pan]))[0])
+    pose = match.match(np.array([0.45, 0.5, 0.0]))
+    assert pose is not None and pose[2] == pytest.approx(h[2])
+    assert np.allclose(pose[:2], truth if subcell else [0.5, 0.5], atol=1e-9)
