@@ -285,11 +285,14 @@ class Localizer:
 
     def set_pose(self, mean: ArrayLike, cov: ArrayLike, confirmed: bool = True) -> None:
         """A Gaussian belief around a robot pose: ``confirmed`` (an operator's pose) starts
-        ``tracking`` at once; unconfirmed (a recalled pose) stays ``global`` until the views
-        confirm it (:meth:`AuxiliaryParticleFilter.set_pose`)."""
+        ``tracking`` at once, and the standing match leaves it until the base moves;
+        unconfirmed (a recalled pose) stays ``global`` until the views confirm it
+        (:meth:`AuxiliaryParticleFilter.set_pose`)."""
         self.filter.set_pose(mean, cov, confirmed)
         if self.standing is not None:
             self.standing.reset()
+            if confirmed:  # an operator's pose: the views of this place do not override it
+                self.standing.hold()
         if self._adaptive is not None:
             self._adaptive.reset()
 

@@ -23,7 +23,9 @@ weights, its place is the views' joint answer. It acts only
   :attr:`StandingMatchConfig.gate` of the particles' weight lies within
   :attr:`StandingMatchConfig.radius` of its estimate;
 * with at least :attr:`StandingMatchConfig.min_views` views, and on a map that is a lattice
-  of positions x headings (:meth:`StandingMatch.for_map` says why not, once, otherwise).
+  of positions x headings (:meth:`StandingMatch.for_map` says why not, once, otherwise);
+* not after an operator's pose (:meth:`StandingMatch.hold`) until the base has moved: the
+  operator's word holds where it was given.
 
 The heading is left to the filter: the map's headings are a lattice too, and the filter's
 heading is finer than it.
@@ -95,6 +97,7 @@ class StandingMatch:
         self.spacing = float(np.median(self._tree.query(lattice.xy, k=2)[0][:, 1])) if lattice.xy.shape[0] > 1 else 0.0
         self._pans: list[float] = []
         self._views: list[FloatArray] = []
+        self._held = False
         self.matches = 0  # times the belief was moved (status and tests)
 
     @classmethod
@@ -119,6 +122,11 @@ class StandingMatch:
         self._pans.clear()
         self._views.clear()
 
+    def hold(self) -> None:
+        """Do not move the belief until the base has moved: an operator's pose is not
+        overridden by the views of the place where it was given."""
+        self._held = True
+
     def observe(self, delta: ArrayLike, pan: float, features: ArrayLike | None) -> None:
         """A frame: odometry increment ``delta`` (robot frame) since the previous one, the head's
         pan (rad) and the image's intensity features (None: no image). A moving base starts a
@@ -127,6 +135,7 @@ class StandingMatch:
         a head holding still for many frames weighs as one view."""
         if independent_views(np.asarray(delta, dtype=np.float64)) >= STANDING_VIEWS:
             self.reset()
+            self._held = False
         if features is None or not math.isfinite(float(pan)):
             return
         y = np.asarray(features, dtype=np.float64).reshape(-1)
@@ -180,7 +189,7 @@ class StandingMatch:
         Nothing moves on the frame the base moved on: its view starts the next set, and one
         view taken on the way is no standing robot's. Returns whether the belief moved."""
         self.observe(delta, pan, features)
-        if independent_views(np.asarray(delta, dtype=np.float64)) >= STANDING_VIEWS:
+        if self._held or independent_views(np.asarray(delta, dtype=np.float64)) >= STANDING_VIEWS:
             return False
         est = pf.estimate()
         if est.state == "lost":

@@ -182,7 +182,7 @@ def _grid_world() -> tuple[TinyMap, object]:
 
 
 def test_a_standing_localizer_is_placed_by_its_views() -> None:
-    """A belief 15 cm off, the robot standing at a map position and the head turning: with the
+    """A recalled belief 15 cm off, the robot standing at a map position and the head turning: with the
     match at the lattice's points the estimate is that map position; between them (the
     default) it stays nearer than the filter alone leaves it."""
     m, f_img = _grid_world()
@@ -193,7 +193,7 @@ def test_a_standing_localizer_is_placed_by_its_views() -> None:
         loc = Localizer(m, LocalizerConfig(filter=FilterConfig(n_particles=300, seed=3),
                                            sensor=SensorModelConfig(j=10), standing_match=cfg))
         assert (loc.standing is not None) == cfg.enabled
-        loc.set_pose(truth + [0.12, -0.09, 0.02], np.diag([0.03**2, 0.03**2, 0.02**2]))
+        loc.set_pose(truth + [0.12, -0.09, 0.02], np.diag([0.03**2, 0.03**2, 0.02**2]), confirmed=False)
         rng = np.random.default_rng(4)
         for pan in (0.0, 0.5, 1.0, -0.5, -1.0):
             est = loc.update(np.zeros(3), pan, f_img(truth + [0.0, 0.0, pan])[0] + rng.normal(0, 0.02, 16))
@@ -223,3 +223,22 @@ def test_subcell_places_the_position_at_the_vertex_of_a_quadratic_cost(subcell: 
     pose = match.match(np.array([0.45, 0.5, 0.0]))
     assert pose is not None and pose[2] == pytest.approx(h[2])
     assert np.allclose(pose[:2], truth if subcell else [0.5, 0.5], atol=1e-9)
+
+
+def test_an_operator_s_pose_holds_until_the_robot_moves() -> None:
+    """A confirmed pose (an operator's) is not moved by the views of the place where it was
+    given; once the base has moved and stopped again, the match places the belief."""
+    m, f_img = _grid_world()
+    loc = Localizer(m, LocalizerConfig(filter=FilterConfig(n_particles=300, seed=3), sensor=SensorModelConfig(j=10),
+                                       standing_match=StandingMatchConfig(subcell=False)))
+    truth = np.array([1.0, 0.75, 0.0])
+    loc.set_pose(truth + [0.12, -0.09, 0.02], np.diag([0.03**2, 0.03**2, 0.02**2]))
+    rng = np.random.default_rng(4)
+    for pan in (0.0, 0.5, 1.0):
+        loc.update(np.zeros(3), pan, f_img(truth + [0.0, 0.0, pan])[0] + rng.normal(0, 0.02, 16))
+    assert loc.standing is not None and loc.standing.matches == 0
+    truth = np.array([1.25, 0.75, 0.0])  # it drives 25 cm ahead and stops
+    est = loc.update(np.array([0.25, 0.0, 0.0]), 0.0, f_img(truth)[0] + rng.normal(0, 0.02, 16))
+    for pan in (0.5, 1.0):
+        est = loc.update(np.zeros(3), pan, f_img(truth + [0.0, 0.0, pan])[0] + rng.normal(0, 0.02, 16))
+    assert loc.standing.matches >= 1 and np.hypot(*(est.pose[:2] - truth[:2])) < 1e-6
