@@ -321,6 +321,12 @@ class Localizer:
         the start (``lino_loc.appearance_change``); 0 when that watch is switched off."""
         return self.filter.appearance_changes
 
+    @property
+    def standing_matches(self) -> int:
+        """How many times the standing match moved the belief since the start
+        (``lino_loc.standing_match``); 0 when it is off."""
+        return 0 if self.standing is None else self.standing.matches
+
     def sensor_model(
         self, channel: str = "intensity"
     ) -> NearestNeighbourSensorModel | InterpolatedSensorModel:

@@ -459,6 +459,10 @@ class StatusMessage(_Published):
         0, ge=0, description="frame updates that raised since start (logged; the frame was "
         "skipped and the daemon went on)"
     )
+    standing_matches: int = Field(
+        0, ge=0, description="updates whose standing match moved the belief to where the views "
+        "taken while standing jointly match the map's (localizer.standing_match), since start"
+    )
     latency_ms: LatencyStats = Field(default_factory=LatencyStats)
     devices: dict[str, DeviceHealthModel] = Field(
         default_factory=dict, description="keys: camera, head, odometry"

@@ -106,6 +106,7 @@ class StatusSources:
     control_refused_handshakes: Callable[[], int] = lambda: 0
     recording: Callable[[], RecordingInfo | None] = lambda: None
     live_view: Callable[[], LiveViewInfo | None] = lambda: None
+    standing_matches: Callable[[], int] = lambda: 0
 
 
 class StatusReporter:
@@ -245,6 +246,7 @@ class StatusReporter:
             out_of_order_frames=out_of_order,
             update_errors=update_errors,
             appearance_changes=self.sources.appearance_changes(),
+            standing_matches=self.sources.standing_matches(),
             latency_ms=latency,
             devices={k: DeviceHealthModel.from_health(h) for k, h in health.items()},
             uptime_s=self._clock() - self._started,

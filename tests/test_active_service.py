@@ -425,11 +425,13 @@ def _phase(col: Collector, start: tuple[float, float, float], active: bool, afte
 
 
 def _check_status(rep: str) -> None:
-    """The daemon's status says what active vision did: it commanded the head, within range."""
+    """The daemon's status says what active vision did: it commanded the head, within range;
+    and the robot standing on the translated map, the standing match placed the belief."""
     st = request(rep, {"cmd": "status"})
     av = st["status"]["active_vision"]
     assert st["ok"] and av["head_commands"] >= 1 and av["last_decision"] is not None, av
     assert av["last_command_rad"] is not None and abs(av["last_command_rad"]) <= PAN_LIMIT + 1e-9, av
+    assert st["status"]["standing_matches"] >= 1, st["status"]
 
 
 def _head_fixed(col: Collector, daemon: Any, rep: str) -> float:
