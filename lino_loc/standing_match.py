@@ -127,20 +127,22 @@ class StandingMatch:
         overridden by the views of the place where it was given."""
         self._held = True
 
-    def observe(self, delta: ArrayLike, pan: float, features: ArrayLike | None) -> None:
+    def observe(self, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """A frame: odometry increment ``delta`` (robot frame) since the previous one, the head's
         pan (rad) and the image's intensity features (None: no image). A moving base starts a
         new set of views. One view is kept per pan: a frame at a pan that rounds to a kept
         view's on the map's heading lattice (the same stored views match both) replaces it, so
-        a head holding still for many frames weighs as one view."""
-        if independent_views(np.asarray(delta, dtype=np.float64)) >= STANDING_VIEWS:
+        a head holding still for many frames weighs as one view. Returns whether the base
+        stood for this frame."""
+        standing = independent_views(np.asarray(delta, dtype=np.float64)) < STANDING_VIEWS
+        if not standing:
             self.reset()
             self._held = False
         if features is None or not math.isfinite(float(pan)):
-            return
+            return standing
         y = np.asarray(features, dtype=np.float64).reshape(-1)
         if not np.all(np.isfinite(y)):
-            return
+            return standing
         step = self.lattice.heading_step
         same = [i for i, u in enumerate(self._pans) if round(u / step) == round(float(pan) / step)]
         for i in reversed(same):
@@ -149,6 +151,7 @@ class StandingMatch:
         self._views.append(y)
         if len(self._views) > self.config.max_views:
             del self._pans[0], self._views[0]
+        return standing
 
     def match(self, estimate: ArrayLike) -> FloatArray | None:
         """The matched robot pose (x, y, theta) near ``estimate``, None without enough views
@@ -166,20 +169,17 @@ class StandingMatch:
         at the lattice points one spacing either side and at ``pose`` (same heading), by at most
         half a spacing; an axis lacking a neighbour, or whose costs are not convex, stays."""
         lat, h = self.lattice, self.spacing
-        o = np.array([int(round(pose[2] / lat.heading_step)) % lat.n_headings])
+        # the match, then its neighbours -x, +x, -y, +y
+        pts = pose[:2] + h * np.array([[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+        dist, g = self._tree.query(pts)
+        o = np.full(5, int(round(pose[2] / lat.heading_step)) % lat.n_headings)
+        c = lat.costs(g, o, pans, views)
         out = pose.copy()
-        for axis in (0, 1):
-            e = np.zeros(2)
-            e[axis] = h
-            pts = np.array([pose[:2] - e, pose[:2], pose[:2] + e])
-            dist, g = self._tree.query(pts)
-            if np.any(dist > 0.25 * h):
+        for axis, (lo, hi) in enumerate(((1, 2), (3, 4))):
+            curvature = c[lo] - 2.0 * c[0] + c[hi]
+            if dist[lo] > 0.25 * h or dist[hi] > 0.25 * h or not (np.isfinite(c[[0, lo, hi]]).all() and curvature > 0.0):
                 continue
-            c = np.array([lat.costs(np.array([gi]), o, pans, views)[0] for gi in g])
-            curvature = c[0] - 2.0 * c[1] + c[2]
-            if not (np.all(np.isfinite(c)) and curvature > 0.0):
-                continue
-            out[axis] += h * float(np.clip(0.5 * (c[0] - c[2]) / curvature, -0.5, 0.5))
+            out[axis] += h * float(np.clip(0.5 * (c[lo] - c[hi]) / curvature, -0.5, 0.5))
         return out
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
@@ -188,8 +188,7 @@ class StandingMatch:
         (:meth:`recentre`); a lost belief forgets the views (they may come from two places).
         Nothing moves on the frame the base moved on: its view starts the next set, and one
         view taken on the way is no standing robot's. Returns whether the belief moved."""
-        self.observe(delta, pan, features)
-        if self._held or independent_views(np.asarray(delta, dtype=np.float64)) >= STANDING_VIEWS:
+        if not self.observe(delta, pan, features) or self._held:
             return False
         est = pf.estimate()
         if est.state == "lost":
