@@ -267,7 +267,6 @@ class Localizer:
             self.standing.step(self.filter, odometry_delta, pan, feats.get("intensity"))
         return self.estimate(stamp)
 
-
     @property
     def fusion_weights(self) -> dict[str, float] | None:
         """The adaptive fusion weights now (None with fixed weights)."""

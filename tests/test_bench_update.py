@@ -42,6 +42,7 @@ def test_bench_json_has_the_keys(tiny) -> None:
     st = res["standing_ms"]  # the tiny map is a lattice (1.5 m x 45 deg): the match keeps its views
     # one view per pan on the map's 45 deg heading lattice: 7 of the 8 pans are distinct there
     assert st["lattice"] and st["views_kept"] == 7 and st["particles"] == 1000
+    assert st["matches"] >= 1  # the match acted: its cost is in the "on" times
     for arm in ("on", "off"):
         assert 0.0 < st[arm]["min"] <= st[arm]["median"] <= st[arm]["p99"]
 
