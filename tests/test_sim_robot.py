@@ -116,7 +116,12 @@ def test_head_adapter_pans_the_rendered_camera(still) -> None:
             views[goal] = frame.left.astype(np.float32)
             assert abs(still.truth.pan - goal) < 0.002
         assert np.mean(np.abs(views[0.0] - views[1.0])) > 5.0  # it really looks elsewhere
+        # the robot records a frame's info after sending it: wait for that of the frame read
+        deadline = time.monotonic() + 2.0
         info = [f for f in still.frames.snapshot() if f.stamp > t_still + 0.01]
+        while not info and time.monotonic() < deadline:
+            time.sleep(0.01)
+            info = [f for f in still.frames.snapshot() if f.stamp > t_still + 0.01]
         assert info and all(abs(f.pan - 1.0) < 0.002 for f in info)
         assert all(f.pose == pytest.approx((2.0, 1.0, 0.3)) for f in info)
     finally:
