@@ -12,7 +12,8 @@ object:
   same measured at the subscriber (reception time minus stamp);
 - ``dropped_frames``: frames dropped in the window (status ``dropped_frames`` difference:
   frames replaced in the one-frame mailbox while the loop was busy, plus frames the camera
-  adapter skipped to deliver the newest);
+  adapter skipped to deliver the newest); ``standing_matches``: updates in the window whose
+  standing match moved the belief (status difference; ``--standing-match off`` switches it off);
 - ``daemon``: resident memory now and peak (VmRSS / VmHWM, MB) and CPU share
   ((utime + stime) / wall time over the window; 1.0 = one full core); ``sim`` the same CPU
   share for the simulator (it renders the camera, so it is not part of the daemon's cost);
@@ -131,6 +132,8 @@ state_hold = {args.state_hold}
 {"" if args.invariant_prior is None else f"invariant_prior = {args.invariant_prior}"}
 [localizer.filter.challenge]
 after_misfit = {"true" if args.after_misfit == "on" else "false"}
+[localizer.standing_match]
+enabled = {"false" if getattr(args, "standing_match", "on") == "off" else "true"}
 [active_vision]
 enabled = {"true" if args.active_vision else "false"}
 [endpoints]
@@ -238,10 +241,11 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
             return {"p50": None, "p99": None}
         return {"p50": round(float(np.percentile(a, 50)), 2), "p99": round(float(np.percentile(a, 99)), 2)}
 
-    dropped = frames = None
+    dropped = frames = standing = None
     if status0 is not None and status1 is not None:
         dropped = status1["dropped_frames"] - status0["dropped_frames"]
         frames = status1["frames"] - status0["frames"]
+        standing = status1.get("standing_matches", 0) - status0.get("standing_matches", 0)
     return {
         "pose_rate_hz": round(len(window) / (t1 - t0), 3),
         "frame_rate_hz": round(frames / (t1 - t0), 3) if frames is not None else None,
@@ -249,6 +253,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         "rx_latency_ms": pct(rx_lat),
         "frames": frames,
         "dropped_frames": dropped,
+        "standing_matches": standing,
         "final_state": status1["state"] if status1 else None,
         "state_changes_per_min": round(state_changes_per_min([w[0] for w in window], states), 2),
         "tracking_share": round(states.count("tracking") / len(states), 3) if states else None,
@@ -330,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="[localizer.filter.view_fit] invariant_prior (default: the filter's; 0: none)")
     p.add_argument("--after-misfit", choices=("on", "off"), default="on",
                    help="[localizer.filter.challenge] after_misfit (default %(default)s: the filter's default)")
+    p.add_argument("--standing-match", choices=("on", "off"), default="on",
+                   help="[localizer.standing_match] enabled (default %(default)s: the service's default)")
     p.add_argument("--start-timeout", type=float, default=900.0, help="s (includes building the map once)")
     args = p.parse_args(argv)
     runs = [one_run(args) for _ in range(args.repeat)]
@@ -350,13 +357,14 @@ def main(argv: list[str] | None = None) -> int:
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "config": {"world": "office", "map": args.map, "mmap": args.mmap, "index": args.index, "width": args.width, "height": args.height, "fps": args.fps,
                    "particles": args.particles, "active_vision": args.active_vision, "state_hold": args.state_hold,
-                   "misfit_alpha": args.misfit_alpha, "invariant_prior": args.invariant_prior, "after_misfit": args.after_misfit, "seconds": args.seconds, "repeat": args.repeat,
+                   "misfit_alpha": args.misfit_alpha, "invariant_prior": args.invariant_prior, "after_misfit": args.after_misfit, "standing_match": args.standing_match, "seconds": args.seconds, "repeat": args.repeat,
                    "disparity": args.disparity, "translations": args.translations if args.disparity else 1},
         "pose_rate_hz": med(["pose_rate_hz"]),
         "frame_rate_hz": med(["frame_rate_hz"]),
         "latency_ms": {"p50": med(["latency_ms", "p50"]), "p99": med(["latency_ms", "p99"])},
         "rx_latency_ms": {"p50": med(["rx_latency_ms", "p50"]), "p99": med(["rx_latency_ms", "p99"])},
         "dropped_frames": med(["dropped_frames"]),
+        "standing_matches": med(["standing_matches"]),
         "state_changes_per_min": med(["state_changes_per_min"]),
         "tracking_share": med(["tracking_share"]),
         "truth": {k: med(["truth", k]) for k in ("median_error_m", "false_lost_fraction", "confident_wrong_fraction")},

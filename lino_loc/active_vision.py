@@ -51,7 +51,9 @@ turns the head back to ``home_pan`` (ahead) once converged, waits for the head t
 pan outside the intersection of its own range and the head's limits. With
 ``reliability.enabled`` it discounts H(u) at pans near views that fit no map entry
 (:mod:`lino_loc.pan_reliability`; the caller feeds the views with :meth:`ActivePolicy.observe`).
-It is pure logic: the caller (the daemon) passes the head's present pan, its moving flag and the time.
+It is pure logic: the caller (the daemon) passes the head's present pan, its moving flag and the time,
+and may pass ``view_values``: action values that replace H(u) when it gives some (the service's
+standing match, once the belief is gathered on a standing base: :mod:`lino_loc.view_spread`).
 
 Usage::
 
@@ -68,6 +70,7 @@ Usage::
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -740,6 +743,16 @@ class ActivePolicy:
         u = np.clip(self.config.actions(), self.pan_lo, self.pan_hi)
         return np.unique(u)
 
+    def _values(self, p: FloatArray, lw: FloatArray, rng: np.random.Generator | None,
+                view_values: Callable[[FloatArray], ActionValues | None] | None) -> ActionValues:
+        """The candidates' values, discounted by the per-pan reliability: ``view_values``'
+        when it gives some, else the evaluator's H(u)."""
+        candidates = self.candidates()
+        values = None if view_values is None else view_values(candidates)
+        if values is None:
+            values = self.evaluator.evaluate(p, lw, candidates, rng)
+        return self.reliability.discount(values)
+
     def needs_look(self, state: str, belief_h: float, log_likelihood: float, doubt: float = 0.0) -> bool:
         c = self.config
         if state in ("global", "lost"):
@@ -767,6 +780,7 @@ class ActivePolicy:
         frame_stamp: float | None = None,
         rng: np.random.Generator | None = None,
         doubt: float = 0.0,
+        view_values: Callable[[FloatArray], ActionValues | None] | None = None,
     ) -> Decision:
         """The next pan command or None (with the reason).
 
@@ -775,7 +789,10 @@ class ActivePolicy:
         policy waits for a frame taken ``settle_s`` after the head stopped, :class:`HeadSettle`); ``state``/
         ``log_likelihood``: the filter's state and the last observation's predictive
         log-likelihood; ``doubt``: the estimate's evidence that the views no longer fit the
-        belief (``Estimate.doubt``, 1 = lost)."""
+        belief (``Estimate.doubt``, 1 = lost); ``view_values``: called with :meth:`candidates`
+        when a look is needed, action values to use instead of the evaluator's H(u), or None
+        for the evaluator's (the service passes ``Localizer.view_values``: the standing
+        match's, once the belief is gathered)."""
         c = self.config
         if not c.enabled:
             return Decision(None, "disabled")
@@ -798,7 +815,7 @@ class ActivePolicy:
                 self.last_command = home
                 return Decision(home, "home", h_b)
             return Decision(None, "converged", h_b)
-        values = self.reliability.discount(self.evaluator.evaluate(p, lw, self.candidates(), rng))
+        values = self._values(p, lw, rng, view_values)
         here = float(pan) if math.isfinite(pan) else None
         best = values.best(here, c.move_cost)
         if values.gain[best] < c.min_entropy_gain:

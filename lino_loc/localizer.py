@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from lino_loc.active_vision import ActionValues
 from lino_loc.errors import LinoLocError
 from lino_loc.fusion import FusionConfig, fuse
 from lino_loc.fusion_weights import AdaptiveFusionWeights
@@ -313,6 +314,16 @@ class Localizer:
         """(robot poses (N, 3), normalized log-weights (N,)): the filter's own arrays, for
         readers such as active vision. Do not modify them; the next update replaces them."""
         return self.filter.particles, self.filter.log_weights
+
+    def view_values(self, actions: ArrayLike) -> ActionValues | None:
+        """Where active vision should look once the standing match has views and the belief is gathered:
+        its action values of the pans ``actions`` (``StandingMatch.action_values``, the pan
+        farthest from the views kept); None when it would not act or is off (the filter's
+        H(u) decides)."""
+        if self.standing is None:
+            return None
+        return self.standing.action_values(self.filter.particles, self.filter.weights,
+                                           self.filter.estimate().pose, actions)
 
     @property
     def appearance_changes(self) -> int:

@@ -7,9 +7,10 @@ it stopped was taken at one position, and together they say more: the map positi
 heading whose stored views best match all of them at their pans (:class:`ViewLattice`, the
 map oracle's rule of the evaluation, here near the filter's estimate) is where the robot
 stands, to the map's lattice (25 cm with virtual translations); with
-:attr:`StandingMatchConfig.subcell` (the default) it is placed between the lattice points at
-the vertex of the parabola through the joint cost of the match and of its two neighbours,
-along x and along y (the sub-pixel rule of stereo matching, here on the position lattice).
+:attr:`StandingMatchConfig.subcell` (the default) it is placed between the lattice points
+where the views best match the map's views interpolated between them
+(:mod:`lino_loc.subcell_match`: the appearance manifold interpolated between sampled poses,
+as the paper's reference [8], Murase & Nayar, does).
 
 :class:`StandingMatch` keeps those views (robot pan, intensity features) and, after each
 filter update, moves the particles near the estimate by the difference between the matched
@@ -22,13 +23,20 @@ weights, its place is the views' joint answer. It acts only
 * once the filter has found the neighbourhood: at least
   :attr:`StandingMatchConfig.gate` of the particles' weight lies within
   :attr:`StandingMatchConfig.radius` of its estimate;
-* with at least :attr:`StandingMatchConfig.min_views` views, and on a map that is a lattice
-  of positions x headings (:meth:`StandingMatch.for_map` says why not, once, otherwise);
+* with at least :attr:`StandingMatchConfig.min_views` views of distinct pans (two: a robot
+  whose head holds still adds nothing to what the filter judges of its one view), and on a map
+  that is a lattice of positions x headings (:meth:`StandingMatch.for_map` says why not,
+  once, otherwise);
 * not after an operator's pose (:meth:`StandingMatch.hold`) until the base has moved: the
   operator's word holds where it was given.
 
 The heading is left to the filter: the map's headings are a lattice too, and the filter's
 heading is finer than it.
+
+Once the belief is gathered, it also says where the head should look next
+(:meth:`StandingMatch.action_values`, :attr:`StandingMatchConfig.choose_views`): the pan
+farthest from the views kept (:mod:`lino_loc.view_spread`), since what remains uncertain is
+the match's own error, which the filter's H(u) cannot see.
 """
 
 from __future__ import annotations
@@ -41,9 +49,12 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from lino_loc.active_vision import ActionValues
 from lino_loc.lost_detection import STANDING_VIEWS, independent_views
 from lino_loc.pose_estimate import Estimate
+from lino_loc.subcell_match import subcell_pose
 from lino_loc.view_match import ViewLattice, ViewMatchConfig
+from lino_loc.view_spread import spread_values
 
 FloatArray = NDArray[np.float64]
 
@@ -74,11 +85,18 @@ class StandingMatchConfig(BaseModel):
         0.5, ge=0.0, le=1.0, description="share of the particles' weight within radius of the estimate "
         "before the match acts (the filter has found the neighbourhood)"
     )
-    min_views: int = Field(1, ge=1, description="views taken while standing before the match acts")
+    min_views: int = Field(
+        2, ge=1, description="views of distinct pans taken while standing before the match acts (one "
+        "view alone is what the filter's sensor model already judges; a head held still gives one)"
+    )
     max_views: int = Field(16, ge=1, description="the most recent views (of distinct pans) kept while standing")
     subcell: bool = Field(
-        True, description="place the position between lattice points: a parabola through the "
-        "match's cost and its two neighbours' along x and along y (at the matched heading)"
+        True, description="place the position between lattice points: where the views match the map's "
+        "stored views interpolated between the lattice poses around the match (lino_loc.subcell_match)"
+    )
+    choose_views: bool = Field(
+        True, description="once the belief is gathered and a view is kept, active vision looks at the pan "
+        "farthest from the views kept (lino_loc.view_spread) instead of the filter's H(u)"
     )
     min_headings: int = Field(
         8, ge=2, description="a map whose positions hold fewer headings than this on average is no "
@@ -98,6 +116,7 @@ class StandingMatch:
         self._pans: list[float] = []
         self._views: list[FloatArray] = []
         self._held = False
+        self._standing = False  # whether the base stood for the last frame
         self.matches = 0  # times the belief was moved (status and tests)
 
     @classmethod
@@ -135,6 +154,7 @@ class StandingMatch:
         a head holding still for many frames weighs as one view. Returns whether the base
         stood for this frame."""
         standing = independent_views(np.asarray(delta, dtype=np.float64)) < STANDING_VIEWS
+        self._standing = standing
         if not standing:
             self.reset()
             self._held = False
@@ -162,25 +182,7 @@ class StandingMatch:
         pose = self.lattice.match(np.asarray(estimate, dtype=np.float64), pans, views)
         if pose is None or not self.config.subcell or self.spacing <= 0.0:
             return pose
-        return self._subcell(pose, pans, views)
-
-    def _subcell(self, pose: FloatArray, pans: FloatArray, views: FloatArray) -> FloatArray:
-        """``pose`` moved along x and along y to the vertex of the parabola through the costs
-        at the lattice points one spacing either side and at ``pose`` (same heading), by at most
-        half a spacing; an axis lacking a neighbour, or whose costs are not convex, stays."""
-        lat, h = self.lattice, self.spacing
-        # the match, then its neighbours -x, +x, -y, +y
-        pts = pose[:2] + h * np.array([[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
-        dist, g = self._tree.query(pts)
-        o = np.full(5, int(round(pose[2] / lat.heading_step)) % lat.n_headings)
-        c = lat.costs(g, o, pans, views)
-        out = pose.copy()
-        for axis, (lo, hi) in enumerate(((1, 2), (3, 4))):
-            curvature = c[lo] - 2.0 * c[0] + c[hi]
-            if dist[lo] > 0.25 * h or dist[hi] > 0.25 * h or not (np.isfinite(c[[0, lo, hi]]).all() and curvature > 0.0):
-                continue
-            out[axis] += h * float(np.clip(0.5 * (c[lo] - c[hi]) / curvature, -0.5, 0.5))
-        return out
+        return subcell_pose(self.lattice, self._tree, self.spacing, pose, pans, views)
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """After a filter update with the frame (``delta``, ``pan``, intensity ``features``):
@@ -200,17 +202,34 @@ class StandingMatch:
         pf.move_particles(moved)
         return True
 
+    def _near(self, particles: FloatArray, weights: FloatArray, estimate: FloatArray) -> NDArray[np.bool_] | None:
+        """The particles within ``radius`` of ``estimate``, None while they hold less than ``gate``
+        of the weight (the filter has not found the neighbourhood)."""
+        near = np.hypot(particles[:, 0] - estimate[0], particles[:, 1] - estimate[1]) <= self.config.radius
+        return near if float(np.sum(weights[near])) >= self.config.gate else None
+
     def recentre(self, particles: FloatArray, weights: FloatArray, estimate: ArrayLike) -> FloatArray | None:
         """The particles (N, 3) with those within ``radius`` of ``estimate`` moved by the matched
         position minus the estimate; None when the match does not act (module docstring)."""
         est = np.asarray(estimate, dtype=np.float64)
-        near = np.hypot(particles[:, 0] - est[0], particles[:, 1] - est[1]) <= self.config.radius
-        if float(np.sum(weights[near])) < self.config.gate:
-            return None
-        m = self.match(est)
-        if m is None:
+        near = self._near(particles, weights, est)
+        m = None if near is None else self.match(est)
+        if m is None or near is None:
             return None
         moved = np.array(particles, dtype=np.float64, copy=True)
         moved[near, :2] += m[:2] - est[:2]
         self.matches += 1
         return moved
+
+    def action_values(self, particles: FloatArray, weights: FloatArray, estimate: ArrayLike,
+                      actions: ArrayLike) -> ActionValues | None:
+        """With ``choose_views``, on a standing base (the last frame's) once the belief is
+        gathered (``gate``) and a view is kept, no operator's pose held: the spread rule's
+        values of ``actions`` (:func:`lino_loc.view_spread.spread_values`, the pan farthest from
+        the views kept, which the match will join); None otherwise (the filter's H(u) decides:
+        a driving base's views are not joined)."""
+        if not self.config.choose_views or self._held or not self._views or not self._standing:
+            return None
+        if self._near(particles, weights, np.asarray(estimate, dtype=np.float64)) is None:
+            return None
+        return spread_values(self._pans, actions, int(particles.shape[0]))

@@ -204,7 +204,7 @@ class ActiveHead:
             d = self.policy.decide(
                 particles, log_weights, state=est.state, log_likelihood=est.log_likelihood,
                 pan=state.pan, moving=state.moving, now=time.time(), frame_stamp=stamp,
-                doubt=est.doubt,
+                doubt=est.doubt, view_values=self.localizer.view_values,
             )
             standing = delta is not None and independent_views(delta) < STANDING_VIEWS
             look = self._confirmation_look(d, est, state.pan) if standing else None

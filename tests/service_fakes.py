@@ -95,6 +95,10 @@ class FakeLocalizer:
     def belief(self) -> tuple[np.ndarray, np.ndarray]:
         return self.p, np.log(self.w)
 
+    def view_values(self, actions: np.ndarray) -> None:
+        """No standing match: the policy's H(u) decides."""
+        return None
+
     def set_pose(self, mean: np.ndarray, cov: np.ndarray) -> None:
         self.calls.append(("set_pose", mean.copy(), cov.copy()))
 

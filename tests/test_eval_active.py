@@ -316,3 +316,22 @@ def test_the_strategies_option_runs_the_lattice_strategy(capsys: pytest.CaptureF
         assert main(["eval", "active", *TINY, "--strategies", bad]) == 2
         err = capsys.readouterr().err
         assert "--strategies" in err and "Traceback" not in err
+
+
+def test_the_standing_options_reach_the_standing_match(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--standing-match``, ``--standing-subcell`` and ``--standing-views`` set the standing
+    match's settings, reported in the result's setup (the views' choice is the service's
+    default, on); ``--paper`` fixes them off."""
+    from services.cli import build_parser
+    from services.evaluation.commands.active_cmd import _setup
+
+    parse = build_parser().parse_args
+    default = _setup(parse(["eval", "active"]), ())
+    assert default.standing_match.enabled and default.standing_match.subcell and default.standing_match.choose_views
+    got = _setup(parse(["eval", "active", "--standing-views", "off", "--standing-subcell", "off"]), ())
+    assert got.standing_match.enabled and not got.standing_match.choose_views and not got.standing_match.subcell
+    assert got.report()["standing_match"]["choose_views"] is False
+    assert not _setup(parse(["eval", "active", "--standing-match", "off"]), ()).standing_match.enabled
+    assert main(["eval", "active", "--paper", "--standing-views", "on", "--positions", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--paper fixes --standing-views off" in err and "Traceback" not in err

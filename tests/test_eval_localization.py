@@ -116,6 +116,7 @@ def test_tracking_eval_keys_and_trajectories(office_map, tmp_path) -> None:
                                    duration=2.0, rate=2.0, particles=100, workers=1, **SMALL)
     res = tracking.run(setup, maps={"none": office_map}, trajectories=tmp_path / "traj")
     assert res["frames"] == 5 and res["scene_changes"] == ["boxes"]
+    assert res["pause_probability"] == 0.0 and 0 <= res["standing_frames"] < 5
     for light in ("tube", "bulb"):
         r = res["conditions"][light]
         for key in ("ate_rmse_m", "mean_error_m", "max_error_m", "heading_rmse_deg", "converged_after_s"):
@@ -212,9 +213,26 @@ def test_tracking_map_settings_reach_the_map_build(monkeypatch, office_map, caps
             seen["disparity_features"], seen["disparity"]) == (0.75, 15.0, 5, 3, 5, True)
     for bad, needle in ((["--translations", "2"], "--translations must be odd"),
                         (["--step", "0"], "--step and --heading-step must be positive"),
-                        (["--disparity-features", "0"], "--disparity-features must be positive")):
+                        (["--disparity-features", "0"], "--disparity-features must be positive"),
+                        (["--pauses", "1.5"], "--pauses must be a probability in [0, 1] (got 1.5)")):
         assert main(["eval", "tracking", *bad]) == 2
         assert needle in capsys.readouterr().err
+
+
+def test_tracking_pauses_reach_the_drive_planner(monkeypatch, office_map) -> None:
+    """``pause_probability`` (``--pauses``) is the drive planner's: the evaluated robot stops at
+    the goals it reaches, as the simulated robot does."""
+    seen: dict = {}
+
+    def fake_plan(world, cfg, seed):
+        seen["planner"] = cfg.planner
+        raise SystemExit(0)
+
+    monkeypatch.setattr(tracking, "plan_drive", fake_plan)
+    with pytest.raises(SystemExit):
+        tracking.run(tracking.TrackingSetup(world="office", pause_probability=0.3, lights=("tube",)),
+                     maps={"none": office_map})
+    assert seen["planner"].pause_probability == 0.3
 
 
 def test_switch_lights_argument_errors(capsys) -> None:

@@ -5,15 +5,19 @@ from __future__ import annotations
 
 import math
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
 
+from lino_loc.active_vision import ActionEvaluator, ActionValues, ActivePolicy, ActiveVisionConfig
 from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.sensor_model import Bounds, SensorModelConfig
 from lino_loc.standing_match import StandingMatch, StandingMatchConfig
+from lino_loc.subcell_match import SUBCELL_STEPS
+from lino_loc.view_spread import separation
 from tests.test_localizer import Channel, TinyMap, _feature_fn
 
 HEADINGS = 12  # every 30 deg
@@ -137,7 +141,10 @@ def test_step_moves_the_filter_s_belief_and_keeps_its_weights() -> None:
     weights = pf.weights
     before = pf.particles.copy()
     y = _stored(entries, features, (0.5, 0.25), 0.0)
-    assert match.step(pf, np.zeros(3), 0.0, y)
+    assert not match.step(pf, np.zeros(3), 0.0, y)  # one view: the filter's own judgement stands
+    assert np.array_equal(pf.particles, before)
+    pan = 2 * 2 * math.pi / HEADINGS
+    assert match.step(pf, np.zeros(3), pan, _stored(entries, features, (0.5, 0.25), pan))
     shift = pf.particles[:, :2] - before[:, :2]
     assert np.allclose(shift, shift[0]) and np.array_equal(pf.weights, weights)
     assert np.allclose(pf.estimate().pose[:2], [0.5, 0.25], atol=1e-9)
@@ -147,7 +154,8 @@ def test_step_moves_the_filter_s_belief_and_keeps_its_weights() -> None:
 
 def test_a_driving_robot_is_never_moved() -> None:
     """Every frame's view is kept as the first of a new set, but one view taken on the way is
-    no standing robot's: the belief stays where the filter put it."""
+    no standing robot's: the belief stays where the filter put it. Once it stands, the views
+    of two pans move it (one pan is a head held still)."""
     match, entries, features = _standing()
     pf = _filter()
     pf.set_pose([0.4, 0.35, 0.0], np.diag([0.03**2, 0.03**2, 0.02**2]))
@@ -157,8 +165,71 @@ def test_a_driving_robot_is_never_moved() -> None:
         assert not match.step(pf, np.array([0.05, 0.0, 0.0]), 0.0, y)
         assert match.n_views == 1
     assert np.array_equal(pf.particles, before) and match.matches == 0
-    assert match.step(pf, np.zeros(3), 0.0, y)  # it stops: the view at that pan, now a standing one's
-    assert match.n_views == 1 and match.matches == 1
+    assert not match.step(pf, np.zeros(3), 0.0, y)  # it stops: the view at that pan, now a standing one's
+    assert match.n_views == 1 and match.matches == 0  # one pan: a head held still adds no view
+    pan = 2 * math.pi / HEADINGS
+    assert match.step(pf, np.zeros(3), pan, _stored(entries, features, (0.5, 0.25), pan))
+    assert match.n_views == 2 and match.matches == 1
+
+
+def test_while_the_match_would_act_it_chooses_the_view_farthest_from_those_kept() -> None:
+    """``action_values``: the spread rule over the pans kept while the belief is gathered;
+    None without views, for a spread belief, on a driving base (its views are not joined),
+    after an operator's pose, or with ``choose_views`` off (the filter's H(u) decides then)."""
+    match, entries, features = _standing(StandingMatchConfig(subcell=False))
+    pf = _filter()
+    pans = np.linspace(-2.6, 2.6, 22)
+    pf.set_pose([0.4, 0.35, 0.0], np.diag([0.03**2, 0.03**2, 0.02**2]))
+    assert match.action_values(pf.particles, pf.weights, pf.estimate().pose, pans) is None  # no views yet
+    _take_views(match, entries, features, (0.5, 0.25), 0.0, [0.0, 2.6])
+    v = match.action_values(pf.particles, pf.weights, pf.estimate().pose, pans)
+    assert v is not None
+    np.testing.assert_allclose(v.gain, separation([0.0, 2.6], pans))
+    spread = np.column_stack([np.linspace(0.0, 3.0, 200), np.full(200, 0.35), np.zeros(200)])
+    assert match.action_values(spread, np.full(200, 1 / 200), np.array([0.4, 0.35, 0.0]), pans) is None
+    driving, _, _ = _standing(StandingMatchConfig(subcell=False))
+    driving.observe(np.array([0.05, 0.0, 0.0]), 0.0, features[0])  # a moving base's view: not joined
+    assert driving.n_views == 1
+    assert driving.action_values(pf.particles, pf.weights, pf.estimate().pose, pans) is None
+    match.hold()
+    assert match.action_values(pf.particles, pf.weights, pf.estimate().pose, pans) is None
+    off, entries, features = _standing(StandingMatchConfig(subcell=False, choose_views=False))
+    _take_views(off, entries, features, (0.5, 0.25), 0.0, [0.0, 2.6])
+    assert off.action_values(pf.particles, pf.weights, pf.estimate().pose, pans) is None
+
+
+class _CountingEvaluator(ActionEvaluator):
+    """The H(u) evaluator, counting its evaluations."""
+
+    calls = 0
+
+    def evaluate(self, *args: Any, **kwargs: Any) -> ActionValues:
+        self.calls += 1
+        return super().evaluate(*args, **kwargs)
+
+
+def test_a_standing_localizer_s_policy_looks_away_from_its_views() -> None:
+    """The service's wiring: ``Localizer.view_values`` feeds ``ActivePolicy.decide``, which then
+    commands the pan farthest from the views taken; with the match off the filter's H(u)
+    decides (the evaluator is called)."""
+    m, f_img = _grid_world()
+    truth = np.array([1.0, 0.75, 0.0])
+    for cfg in (StandingMatchConfig(), StandingMatchConfig(choose_views=False)):
+        loc = Localizer(m, LocalizerConfig(filter=FilterConfig(n_particles=300, seed=3),
+                                           sensor=SensorModelConfig(j=10), standing_match=cfg))
+        loc.set_pose(truth, np.diag([0.03**2, 0.03**2, 0.02**2]), confirmed=False)
+        for pan in (0.0, 0.5):
+            loc.update(np.zeros(3), pan, f_img(truth + [0.0, 0.0, pan])[0])
+        evaluator = _CountingEvaluator(loc.sensor_model("intensity"), ActiveVisionConfig())
+        policy = ActivePolicy(evaluator)
+        p, lw = loc.belief()
+        d = policy.decide(p, lw, state="global", log_likelihood=-1.0, pan=0.5, moving=False, now=10.0,
+                          view_values=loc.view_values)
+        assert d.values is not None
+        if cfg.choose_views:
+            assert evaluator.calls == 0 and d.command == pytest.approx(-2.6)  # farthest from 0.0 and 0.5
+        else:
+            assert evaluator.calls == 1 and d.values.current_entropy > 0.0  # H(u), nats
 
 
 def test_a_lost_belief_forgets_the_views() -> None:
@@ -204,25 +275,68 @@ def test_a_standing_localizer_is_placed_by_its_views() -> None:
     assert errors["default"] < errors["off"] and errors["off"] > 0.01, errors
 
 
-@pytest.mark.parametrize("subcell", [False, True])
-def test_subcell_places_the_position_at_the_vertex_of_a_quadratic_cost(subcell: bool) -> None:
-    """Features linear in the position (x, y) and turning with the heading: the joint cost of
-    views taken between lattice points is exactly quadratic along each axis, so the parabola's
-    vertex is the true position; without ``subcell`` the match is the nearest lattice point."""
+def _linear_lattice(missing: tuple[float, float] | None = None) -> tuple[np.ndarray, Any]:
+    """Entries on a 5 x 5 lattice every 25 cm (without the position ``missing``) and features
+    linear in the position (x, y) and turning with the heading: bilinear interpolation between
+    the lattice points is exact."""
     h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
-    entries = np.array([[x, y, t] for x in np.arange(5) * 0.25 for y in np.arange(5) * 0.25 for t in h])
+    entries = np.array([[x, y, t] for x in np.arange(5) * 0.25 for y in np.arange(5) * 0.25 for t in h
+                        if missing is None or not np.allclose((x, y), missing)])
 
     def feats(xy: np.ndarray, t: np.ndarray) -> np.ndarray:
         return np.column_stack([xy[:, 0], xy[:, 1], 3 * np.cos(t), 3 * np.sin(t)])
 
+    return entries, feats
+
+
+@pytest.mark.parametrize("subcell", [False, True])
+@pytest.mark.parametrize("truth", [(0.575, 0.45), (0.57, 0.46)])
+def test_subcell_places_the_position_where_the_interpolated_views_match(subcell: bool, truth: tuple[float, float]) -> None:
+    """With features linear in the position, the interpolated views match exactly at the
+    true position: found exactly on the search grid (0.575, 0.45: 0.3 and -0.2 spacings from
+    the lattice point), within half a grid step off it; without ``subcell`` the match is the
+    nearest lattice point."""
+    entries, feats = _linear_lattice()
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
     match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]), StandingMatchConfig(subcell=subcell))
     assert isinstance(match, StandingMatch) and match.spacing == pytest.approx(0.25)
-    truth = np.array([0.57, 0.46])  # nearest lattice point (0.5, 0.5)
     for pan in (0.0, math.pi / 2, -math.pi / 3):
-        match.observe(np.zeros(3), pan, feats(truth[None], np.array([h[2] + pan]))[0])
+        match.observe(np.zeros(3), pan, feats(np.array([truth]), np.array([h[2] + pan]))[0])
     pose = match.match(np.array([0.45, 0.5, 0.0]))
     assert pose is not None and pose[2] == pytest.approx(h[2])
-    assert np.allclose(pose[:2], truth if subcell else [0.5, 0.5], atol=1e-9)
+    if not subcell:
+        assert np.allclose(pose[:2], [0.5, 0.5], atol=1e-9)
+    else:
+        half_step = 0.5 * match.spacing / SUBCELL_STEPS
+        assert np.all(np.abs(pose[:2] - truth) <= half_step + 1e-9), pose
+        if truth == (0.575, 0.45):
+            assert np.allclose(pose[:2], truth, atol=1e-9)
+
+
+def test_subcell_does_not_interpolate_from_a_missing_lattice_point() -> None:
+    """A lattice point missing next to the match (a wall): the positions that would take its
+    views are not tried, so the truth beyond the half cell next to it is not reached and the
+    match stays where the views it can interpolate fit best."""
+    entries, feats = _linear_lattice(missing=(0.75, 0.5))
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
+    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]))
+    assert isinstance(match, StandingMatch)
+    truth = (0.6, 0.5)  # towards the missing point (0.75, 0.5)
+    for pan in (0.0, math.pi / 2):
+        match.observe(np.zeros(3), pan, feats(np.array([truth]), np.array([h[2] + pan]))[0])
+    pose = match.match(np.array([0.5, 0.5, 0.0]))
+    assert pose is not None and pose[0] == pytest.approx(0.5) and pose[1] == pytest.approx(0.5)
+    complete = StandingMatch.for_map(*_lattice_arrays(feats))
+    assert isinstance(complete, StandingMatch)
+    for pan in (0.0, math.pi / 2):
+        complete.observe(np.zeros(3), pan, feats(np.array([truth]), np.array([h[2] + pan]))[0])
+    found = complete.match(np.array([0.5, 0.5, 0.0]))
+    assert found is not None and np.allclose(found[:2], truth, atol=1e-9)
+
+
+def _lattice_arrays(feats: Any) -> tuple[np.ndarray, np.ndarray]:
+    entries, _ = _linear_lattice()
+    return entries, feats(entries[:, :2], entries[:, 2])
 
 
 def test_an_operator_s_pose_holds_until_the_robot_moves() -> None:

@@ -194,7 +194,7 @@ def product_defaults(**experiment: Any) -> ActiveSetup:
 PAPER_METHOD: dict[str, Any] = {
     "step": 0.75, "heading_step_deg": 15.0, "virtual_headings": 1, "features": 5, "disparity_features": None,
     "preprocess": "none", "channels": ("intensity",), "sensor_model": "nearest_neighbour", "particles": 150,
-    "translations": 1, "standing_match": StandingMatchConfig(enabled=False),
+    "translations": 1, "standing_match": StandingMatchConfig(enabled=False, choose_views=False),
 }
 
 

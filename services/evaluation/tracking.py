@@ -52,10 +52,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.drive import DriveConfig, DrivePlan, plan_drive
+from drivers.sim.drive import DriveConfig, DrivePlan, PlannerConfig, plan_drive
 from drivers.sim.world import load_world
 from lino_loc.disparity import StereoConfig
 from lino_loc.localizer import Localizer, LocalizerConfig
+from lino_loc.lost_detection import STANDING_VIEWS, independent_views
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
 from services.evaluation.frame_trace import frame_row, write_trace
 from services.evaluation.global_loc import localizer_config
@@ -87,6 +88,7 @@ class TrackingSetup:
     scene_changes: tuple[str, ...] = DEFAULT_CHANGES
     duration: float = 240.0
     rate: float = 5.0
+    pause_probability: float = 0.0  # the drive planner's chance of a 0.3-2 s stop at a reached goal
     particles: int | None = None
     j: int | None = None
     start_sigma_xy: float = 0.1
@@ -263,7 +265,8 @@ def run(
             stereo=setup.stereo, virtual_headings=setup.virtual_headings, translations=setup.translations,
             disparity_features=setup.disparity_features,
         )
-    plan = plan_drive(world, DriveConfig(duration=setup.duration, camera_rate=setup.rate, scene_changes=changes),
+    plan = plan_drive(world, DriveConfig(duration=setup.duration, camera_rate=setup.rate, scene_changes=changes,
+                                         planner=PlannerConfig(pause_probability=setup.pause_probability)),
                       seed=setup.seed + 7)
     truth = plan.truth
     odo = plan.odometry
@@ -383,6 +386,8 @@ def run(
         "rate_hz": float(setup.rate),
         "frames": len(plan),
         "path_length_m": plan.length_m,
+        "pause_probability": float(setup.pause_probability),
+        "standing_frames": int(sum(independent_views(d) < STANDING_VIEWS for d in plan.increments)),
         "scene_changes": list(changes),
         "start": f"known pose (sigma {setup.start_sigma_xy:.2f} m, {setup.start_sigma_deg:.1f} deg) for the "
         "error keys; uniform (global) for converged_after_s",

@@ -106,6 +106,7 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
     "pan_reliability": lambda s: "on" if s.active.reliability.enabled else "off",
     "standing_match": lambda s: "on" if s.standing_match.enabled else "off",
     "standing_subcell": lambda s: "on" if s.standing_match.subcell else "off",
+    "standing_views": lambda s: "on" if s.standing_match.choose_views else "off",
     "inject": lambda s: s.inject,
     "global_proposal": lambda s: s.filter_config().global_proposal_fraction,
     "floor_xy": lambda s: s.motion_config().min_sigma_xy,
@@ -115,7 +116,8 @@ _METHOD: dict[str, Callable[[ActiveSetup], Any]] = {
 _PAPER_FIXED: tuple[str, ...] = ("step", "heading_step", "virtual_headings", "features", "disparity_features",
                                  "preprocess",
                                  "channels", "sensor_model", "j", "particles", "actions", "pan_reliability",
-                                 "translations", "standing_match", "standing_subcell")
+                                 "translations", "standing_match", "standing_subcell",
+                                 "standing_views")
 #: Method options mapped one to one onto an ActiveSetup field.
 _FIELDS: dict[str, str] = {"step": "step", "heading_step": "heading_step_deg", "virtual_headings": "virtual_headings",
                            "virtual_step": "virtual_step_deg", "features": "features",
@@ -145,7 +147,8 @@ def with_options(base: ActiveSetup, given: dict[str, Any]) -> ActiveSetup:
     if "pan_reliability" in given:
         active["reliability"] = {**base.active.reliability.model_dump(), "enabled": given["pan_reliability"] == "on"}
     fields: dict[str, Any] = {}
-    standing = {f: given[k] == "on" for k, f in (("standing_match", "enabled"), ("standing_subcell", "subcell"))
+    standing = {f: given[k] == "on" for k, f in (("standing_match", "enabled"), ("standing_subcell", "subcell"),
+                                                          ("standing_views", "choose_views"))
                 if k in given}
     if standing:
         fields["standing_match"] = _copy(base.standing_match, **standing)
@@ -305,6 +308,10 @@ def _method_options(p: argparse.ArgumentParser, dv: dict[str, Any]) -> None:
     p.add_argument("--standing-subcell", choices=("on", "off"),
                    help="the standing match places the position between the map's lattice points "
                    f"(StandingMatchConfig.subcell; default {dv['standing_subcell']})")
+    p.add_argument("--standing-views", choices=("on", "off"),
+                   help="entropy strategy: once the belief is gathered near the standing match's views, look at the pan farthest from "
+                   "the views taken instead of the filter's H(u) (lino_loc.view_spread; "
+                   f"StandingMatchConfig.choose_views, as the service does; default {dv['standing_views']})")
     p.add_argument("--inject", type=float,
                    help="investigation: after each update replace this fraction of the particles by draws "
                    f"from the image's sensor model (default {dv['inject']:g}; 0: the filter as the service runs it)")

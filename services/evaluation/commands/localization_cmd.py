@@ -56,8 +56,8 @@ def check_translations(m: int) -> int:
 
 
 def add_tracking_map_arguments(p: argparse.ArgumentParser) -> None:
-    """The map options of ``eval tracking`` (and of ``benchmarks/tracking_seeds.py``), read
-    back by :func:`tracking_map_settings`."""
+    """The map and drive options of ``eval tracking`` (and of ``benchmarks/tracking_seeds.py``),
+    read back by :func:`tracking_map_settings`."""
     p.add_argument("--step", type=float, default=0.5, help="map grid step, metres (default: the lab's 0.5)")
     p.add_argument("--heading-step", type=float, default=10.0, help="map heading step, degrees (default 10)")
     p.add_argument("--virtual-headings", type=int, default=1, choices=range(1, 32), metavar="N",
@@ -68,6 +68,9 @@ def add_tracking_map_arguments(p: argparse.ArgumentParser) -> None:
                    "(lino_loc.virtual_translations; default 1: none; config/sim.toml's map: 3)")
     p.add_argument("--disparity-features", type=int, default=None,
                    help="features of the disparity channel (default: --features; config/sim.toml's map: 5)")
+    p.add_argument("--pauses", type=float, default=0.0, metavar="P",
+                   help="chance that the drive stops 0.3-2 s at each goal it reaches (drivers.sim.drive; "
+                   "default 0: it never stands; the simulated robot: 0.3)")
 
 
 def tracking_map_settings(args: argparse.Namespace) -> dict[str, Any]:
@@ -78,8 +81,11 @@ def tracking_map_settings(args: argparse.Namespace) -> dict[str, Any]:
     check_translations(args.translations)
     if args.disparity_features is not None and args.disparity_features < 1:
         raise LinoLocError(f"--disparity-features must be positive (got {args.disparity_features})")
+    if not 0.0 <= args.pauses <= 1.0:
+        raise LinoLocError(f"--pauses must be a probability in [0, 1] (got {args.pauses})")
     return {"step": args.step, "heading_step_deg": args.heading_step, "virtual_headings": args.virtual_headings,
-            "translations": args.translations, "disparity_features": args.disparity_features}
+            "translations": args.translations, "disparity_features": args.disparity_features,
+            "pause_probability": args.pauses}
 
 
 def parse_channels(text: str) -> tuple[str, ...]:

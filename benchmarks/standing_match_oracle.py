@@ -1,0 +1,91 @@
+"""The standing match alone, at the truth: how well four views place a standing robot.
+
+For each of ``eval active``'s test positions (the same map, positions and test views as
+``lino-loc eval active`` with the product's defaults) and every first pan ``a0``, the views
+of a set of pans are matched jointly with the map's around the TRUE pose
+(:meth:`lino_loc.standing_match.StandingMatch.match`, hypotheses within 50 cm of it), as the
+filter's estimate would be if it had found the neighbourhood exactly. Reported per set of
+pans, over positions x first pans: the section 6.1 success of the matched pose and its median
+position error (m). The sets:
+
+- ``sweep``: a0 and the sweep's next three (stride 7 of 22, as ``eval active``'s sweep);
+- ``spread``: a0 and three more, each the pan farthest from those taken
+  (:mod:`lino_loc.view_spread`, the service's choice while the match acts);
+- ``random``: a0 and three other pans drawn at random (seeded).
+
+It isolates the match's precision and the views' choice from the filter. Prints one JSON object.
+
+Usage::
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/standing_match_oracle.py --world office [--seed 0] [--subcell off]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main() -> None:
+    from drivers.sim.world import load_world
+    from lino_loc.metrics import success
+    from lino_loc.standing_match import StandingMatch
+    from lino_loc.view_spread import spread_values
+    from services.evaluation import active
+    from services.evaluation.active_setup import product_defaults
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--world", default="office")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--subcell", choices=("on", "off"), default="on")
+    p.add_argument("--workers", type=int, default=2)
+    a = p.parse_args()
+    t0 = time.perf_counter()
+    setup = product_defaults(world=a.world, seed=a.seed, workers=a.workers, movements=3)
+    setup = replace(setup, standing_match=setup.standing_match.model_copy(update={"subcell": a.subcell == "on"}))
+    world = load_world(a.world)
+    grid = active.grid_poses(world, setup.judged_step, math.radians(setup.heading_step_deg))
+    pca, map_features, entries, margin, _ = active.render_map(setup, None)
+    truths = active.place_test_positions(world, setup, grid)
+    pans = setup.active.actions()
+    feats, _ = active.render_tests(setup, pca, margin, truths, pans, (), None)
+    match = StandingMatch.for_map(entries, map_features, setup.standing_match)
+    assert isinstance(match, StandingMatch)
+    n_a = pans.size
+    rng = np.random.default_rng(a.seed)
+    out: dict[str, list[tuple[float, bool]]] = {"sweep": [], "spread": [], "random": []}
+    for i, truth in enumerate(truths):
+        for a0 in range(n_a):
+            spread = [a0]
+            for _ in range(3):
+                values = spread_values(pans[spread], pans)
+                spread.append(values.best(float(pans[spread[-1]]), setup.active.move_cost, exclude=spread))
+            sets = {"sweep": [(a0 + k * setup.sweep_stride) % n_a for k in range(4)], "spread": spread,
+                    "random": [a0, *rng.choice(np.delete(np.arange(n_a), a0), 3, replace=False)]}
+            for name, idx in sets.items():
+                match.reset()
+                for k in idx:
+                    match.observe(np.zeros(3), float(pans[k]), feats[i, k])
+                m = match.match(truth)
+                assert m is not None
+                out[name].append((float(np.hypot(*(m[:2] - truth[:2]))),
+                                  bool(success(m[None], truth[None], grid)[0])))
+    report = {name: {"success": round(float(np.mean([s for _, s in v])), 4),
+                     "median_error_m": round(float(np.median([e for e, _ in v])), 4), "sets": len(v)}
+              for name, v in out.items()}
+    print(json.dumps({"benchmark": "standing_match_oracle", "world": a.world, "seed": a.seed, "subcell": a.subcell,
+                      "positions": int(truths.shape[0]), "first_pans": n_a, "sets": report,
+                      "seconds": round(time.perf_counter() - t0, 1)}))
+
+
+if __name__ == "__main__":
+    main()

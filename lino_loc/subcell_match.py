@@ -1,0 +1,87 @@
+"""Where between the map's lattice points a standing robot's views match best.
+
+The map stores views at lattice poses: positions every ``h`` (25 cm with virtual translations)
+and headings every ``dtheta`` (3 deg with virtual headings). Given the lattice pose that
+matches a set of views best (:meth:`lino_loc.view_match.ViewLattice.match`), the robot's pose
+lies near it, and the appearance between lattice poses is interpolated from theirs, as the
+paper's reference [8] (Murase & Nayar, parametric eigenspace) interpolates the appearance
+manifold between sampled poses: trilinearly, over the 3 x 3 lattice positions around the
+match and the headings one step either side of it. With ``y(p, t)`` that interpolation at
+position p and camera heading t, the views ``y_i`` taken at pans ``u_i`` are placed at
+
+    argmin over (p, o) of  sum_i |y_i - y(p, o + u_i)|^2
+
+searched on a grid: positions within one spacing of the match every ``h / SUBCELL_STEPS``,
+robot headings within half a heading step of it every ``dtheta / (2 HEADING_STEPS)``.
+Bilinear interpolation in (x, y) is the product of the tent functions
+``max(0, 1 - |s - i|)`` along each axis (s in spacings, i in {-1, 0, 1}), and linear
+interpolation in heading the tent along it. A lattice point missing around the match (a wall,
+the map's edge, a heading the survey lacks) excludes the poses that would interpolate from it.
+
+For each heading the cost is a quadratic form in the interpolation weights ``w`` (S, 9):
+``w G w^T - 2 w b + |v|^2`` with ``G = Y Y^T`` and ``b = Y v`` over the 9 lattice views ``Y``
+(9, k d) and the views ``v``, so the search costs (9 x 9) products, not one fit per pose.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from lino_loc.poses import wrap_angle
+from lino_loc.view_match import ViewLattice
+
+FloatArray = NDArray[np.float64]
+
+#: Positions tried per spacing between the lattice points.
+SUBCELL_STEPS = 10
+#: Headings tried per half heading step either side of the match's.
+HEADING_STEPS = 2
+#: The 3 x 3 lattice points around a match, in spacings (x major).
+NEIGHBOURS = np.array([[i, j] for i in (-1.0, 0.0, 1.0) for j in (-1.0, 0.0, 1.0)])
+
+
+def _tent(s: FloatArray, nodes: FloatArray) -> FloatArray:
+    """Linear-interpolation weights (len(s), len(nodes)) of unit-spaced ``nodes`` at ``s``."""
+    return np.maximum(0.0, 1.0 - np.abs(s[:, None] - nodes[None, :]))
+
+
+def _grid() -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Position offsets (S, 2) in spacings and their bilinear weights (S, 9); heading offsets
+    (T,) in heading steps and their weights (T, 3) on the headings -1, 0, +1."""
+    s = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1)
+    sx, sy = (a.ravel() for a in np.meshgrid(s, s, indexing="ij"))
+    w_pos = _tent(sx, NEIGHBOURS[:, 0]) * _tent(sy, NEIGHBOURS[:, 1])
+    t = np.linspace(-0.5, 0.5, 2 * HEADING_STEPS + 1)
+    return np.stack([sx, sy], axis=1), w_pos, t, _tent(t, np.array([-1.0, 0.0, 1.0]))
+
+
+POSITION_OFFSETS, POSITION_WEIGHTS, HEADING_OFFSETS, HEADING_WEIGHTS = _grid()
+
+
+def subcell_pose(lattice: ViewLattice, tree: cKDTree, spacing: float, pose: FloatArray,
+                 pans: FloatArray, views: FloatArray) -> FloatArray:
+    """The pose (x, y, theta) near the lattice pose ``pose`` whose interpolated stored views
+    match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module docstring); ``tree``
+    holds the lattice positions, ``spacing`` their spacing (m). ``pose`` itself when every
+    other pose interpolates from a missing point."""
+    dist, g = tree.query(pose[:2] + spacing * NEIGHBOURS)
+    o = int(round(pose[2] / lattice.heading_step))
+    cols = np.stack([lattice.predicted(g, np.full(9, (o + c) % lattice.n_headings), pans) for c in (-1, 0, 1)])
+    y = cols.transpose(0, 2, 1, 3).reshape(3, 9, -1)  # (headings -1 0 +1, points, k d)
+    missing = np.isnan(y).any(axis=2) | (dist > 0.25 * spacing)[None, :]  # (3, 9)
+    y = np.where(missing[:, :, None], 0.0, y)
+    v = np.asarray(views, dtype=np.float64).reshape(-1)
+    yt = np.tensordot(HEADING_WEIGHTS, y, axes=1)  # (T, 9, k d): each heading's 9 views
+    gram, b = yt @ yt.transpose(0, 2, 1), yt @ v  # (T, 9, 9), (T, 9)
+    w = POSITION_WEIGHTS
+    cost = np.sum((w @ gram) * w, axis=2) - 2.0 * (b @ w.T)  # (T, S): w G w^T - 2 w b
+    gone = (HEADING_WEIGHTS[:, :, None] > 0.0) & missing[None, :, :]  # (T, 3, 9)
+    cost[((w > 0.0)[None, :, :] & gone.any(axis=1)[:, None, :]).any(axis=2)] = np.inf
+    ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    at = (int(i), int(ti)) if np.isfinite(cost[ti, i]) else (POSITION_OFFSETS.shape[0] // 2, HEADING_STEPS)
+    out = np.array(pose, dtype=np.float64, copy=True)
+    out[:2] += spacing * POSITION_OFFSETS[at[0]]
+    out[2] = wrap_angle(out[2] + HEADING_OFFSETS[at[1]] * lattice.heading_step)
+    return out
