@@ -115,6 +115,12 @@ def independent_views(
 STANDING_VIEWS = 0.01
 
 
+def base_stands(delta: ArrayLike) -> bool:
+    """Whether the base stood for a frame whose odometry increment is ``delta``: less than
+    :data:`STANDING_VIEWS` of an independent view (:func:`independent_views`)."""
+    return independent_views(delta) < STANDING_VIEWS
+
+
 def viewed_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:
     """The increment whose views the lost test counts: the camera's
     (:func:`camera_increment`) while the base stands (less than :data:`STANDING_VIEWS` of a
@@ -123,7 +129,7 @@ def viewed_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:
     count, as before pans were counted, so that a driving robot's search is not confirmed
     sooner by the head's turns."""
     d = np.array(delta, dtype=np.float64).reshape(3)
-    return camera_increment(d, pan_change) if independent_views(d) < STANDING_VIEWS else d
+    return camera_increment(d, pan_change) if base_stands(d) else d
 
 
 def camera_increment(delta: ArrayLike, pan_change: float) -> np.ndarray:

@@ -50,7 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
 from lino_loc.active_vision import ActionValues
-from lino_loc.lost_detection import STANDING_VIEWS, independent_views
+from lino_loc.lost_detection import base_stands
 from lino_loc.pose_estimate import Estimate
 from lino_loc.subcell_match import subcell_pose
 from lino_loc.view_match import ViewLattice, ViewMatchConfig
@@ -153,7 +153,7 @@ class StandingMatch:
         view's on the map's heading lattice (the same stored views match both) replaces it, so
         a head holding still for many frames weighs as one view. Returns whether the base
         stood for this frame."""
-        standing = independent_views(np.asarray(delta, dtype=np.float64)) < STANDING_VIEWS
+        standing = base_stands(delta)
         self._standing = standing
         if not standing:
             self.reset()

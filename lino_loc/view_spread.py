@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lino_loc.active_vision import ActionValues
+from lino_loc.poses import wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -40,7 +41,7 @@ def separation(taken: ArrayLike, actions: ArrayLike) -> FloatArray:
     t = np.asarray(taken, dtype=np.float64).reshape(-1)
     if t.size == 0:
         return np.full(u.shape, np.pi)
-    return np.abs(np.angle(np.exp(1j * (u[:, None] - t[None, :])))).min(axis=1)
+    return np.abs(wrap_angle(u[:, None] - t[None, :])).min(axis=1)
 
 
 def spread_values(taken: ArrayLike, actions: ArrayLike, n_particles: int = 0) -> ActionValues:

@@ -54,7 +54,7 @@ from lino_loc.active_vision import (
 )
 from lino_loc.errors import LinoLocError
 from lino_loc.localizer import Localizer
-from lino_loc.lost_detection import STANDING_VIEWS, VIEW_THETA, independent_views
+from lino_loc.lost_detection import VIEW_THETA, base_stands
 from lino_loc.pan_reliability import PanReliabilityConfig
 from lino_loc.pose_estimate import Estimate
 from services.messages import ActiveVisionInfo
@@ -206,7 +206,7 @@ class ActiveHead:
                 pan=state.pan, moving=state.moving, now=time.time(), frame_stamp=stamp,
                 doubt=est.doubt, view_values=self.localizer.view_values,
             )
-            standing = delta is not None and independent_views(delta) < STANDING_VIEWS
+            standing = delta is not None and base_stands(delta)
             look = self._confirmation_look(d, est, state.pan) if standing else None
             if look is not None:
                 d = Decision(look, "confirm", d.belief_entropy, d.values)

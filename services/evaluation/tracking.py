@@ -56,7 +56,7 @@ from drivers.sim.drive import DriveConfig, DrivePlan, PlannerConfig, plan_drive
 from drivers.sim.world import load_world
 from lino_loc.disparity import StereoConfig
 from lino_loc.localizer import Localizer, LocalizerConfig
-from lino_loc.lost_detection import STANDING_VIEWS, independent_views
+from lino_loc.lost_detection import base_stands
 from lino_loc.metrics import ate_rmse, heading_errors, heading_rmse, position_errors
 from services.evaluation.frame_trace import frame_row, write_trace
 from services.evaluation.global_loc import localizer_config
@@ -387,7 +387,7 @@ def run(
         "frames": len(plan),
         "path_length_m": plan.length_m,
         "pause_probability": float(setup.pause_probability),
-        "standing_frames": int(sum(independent_views(d) < STANDING_VIEWS for d in plan.increments)),
+        "standing_frames": int(sum(base_stands(d) for d in plan.increments)),
         "scene_changes": list(changes),
         "start": f"known pose (sigma {setup.start_sigma_xy:.2f} m, {setup.start_sigma_deg:.1f} deg) for the "
         "error keys; uniform (global) for converged_after_s",
