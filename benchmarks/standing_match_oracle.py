@@ -17,7 +17,8 @@ It isolates the match's precision and the views' choice from the filter. Prints 
 
 Usage::
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/standing_match_oracle.py --world office [--seed 0] [--subcell off]
+    OPENBLAS_NUM_THREADS=1 python benchmarks/standing_match_oracle.py --world office [--seed 0] [--subcell off] \
+        [--candidates K]
 """
 
 from __future__ import annotations
@@ -47,11 +48,18 @@ def main() -> None:
     p.add_argument("--world", default="office")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--subcell", choices=("on", "off"), default="on")
+    p.add_argument("--candidates", type=int, default=None,
+                   help="lattice positions the subcell search refines (default: the product's)")
     p.add_argument("--workers", type=int, default=2)
     a = p.parse_args()
     t0 = time.perf_counter()
     setup = product_defaults(world=a.world, seed=a.seed, workers=a.workers, movements=3)
-    setup = replace(setup, standing_match=setup.standing_match.model_copy(update={"subcell": a.subcell == "on"}))
+    update: dict[str, object] = {"subcell": a.subcell == "on"}
+    if a.candidates is not None:
+        if a.candidates < 1:
+            p.error(f"--candidates must be at least 1 (got {a.candidates})")
+        update["candidates"] = a.candidates
+    setup = replace(setup, standing_match=setup.standing_match.model_copy(update=update))
     world = load_world(a.world)
     grid = active.grid_poses(world, setup.judged_step, math.radians(setup.heading_step_deg))
     pca, map_features, entries, margin, _ = active.render_map(setup, None)
@@ -83,6 +91,7 @@ def main() -> None:
                      "median_error_m": round(float(np.median([e for e, _ in v])), 4), "sets": len(v)}
               for name, v in out.items()}
     print(json.dumps({"benchmark": "standing_match_oracle", "world": a.world, "seed": a.seed, "subcell": a.subcell,
+                      "candidates": setup.standing_match.candidates,
                       "positions": int(truths.shape[0]), "first_pans": n_a, "sets": report,
                       "seconds": round(time.perf_counter() - t0, 1)}))
 

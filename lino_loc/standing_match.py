@@ -10,7 +10,9 @@ stands, to the map's lattice (25 cm with virtual translations); with
 :attr:`StandingMatchConfig.subcell` (the default) it is placed between the lattice points
 where the views best match the map's views interpolated between them
 (:mod:`lino_loc.subcell_match`: the appearance manifold interpolated between sampled poses,
-as the paper's reference [8], Murase & Nayar, does).
+as the paper's reference [8], Murase & Nayar, does), around each of the
+:attr:`StandingMatchConfig.candidates` lattice positions that match best; the best fit wins
+(the lattice point nearest the truth need not match best of them: the truth lies between).
 
 :class:`StandingMatch` keeps those views (robot pan, intensity features) and, after each
 filter update, moves the particles near the estimate by the difference between the matched
@@ -52,7 +54,8 @@ from scipy.spatial import cKDTree
 from lino_loc.active_vision import ActionValues
 from lino_loc.lost_detection import base_stands
 from lino_loc.pose_estimate import Estimate
-from lino_loc.subcell_match import subcell_pose
+from lino_loc.poses import wrap_angle
+from lino_loc.subcell_match import subcell_fit
 from lino_loc.view_match import ViewLattice, ViewMatchConfig
 from lino_loc.view_spread import spread_values
 
@@ -93,6 +96,10 @@ class StandingMatchConfig(BaseModel):
     subcell: bool = Field(
         True, description="place the position between lattice points: where the views match the map's "
         "stored views interpolated between the lattice poses around the match (lino_loc.subcell_match)"
+    )
+    candidates: int = Field(
+        3, ge=1, description="with subcell: the lattice positions that match best (each at its best "
+        "heading) placed between the lattice points; the best fit of them wins"
     )
     choose_views: bool = Field(
         True, description="once the belief is gathered and a view is kept, active vision looks at the pan "
@@ -179,10 +186,24 @@ class StandingMatch:
         if len(self._views) < self.config.min_views:
             return None
         pans, views = np.asarray(self._pans), np.stack(self._views)
-        pose = self.lattice.match(np.asarray(estimate, dtype=np.float64), pans, views)
-        if pose is None or not self.config.subcell or self.spacing <= 0.0:
-            return pose
-        return subcell_pose(self.lattice, self._tree, self.spacing, pose, pans, views)
+        est = np.asarray(estimate, dtype=np.float64)
+        if not self.config.subcell or self.spacing <= 0.0:
+            return self.lattice.match(est, pans, views)
+        fits = [subcell_fit(self.lattice, self._tree, self.spacing, p, pans, views)
+                for p in self._candidates(est, pans, views)]
+        return min(fits, key=lambda f: f[1])[0] if fits else None
+
+    def _candidates(self, estimate: FloatArray, pans: FloatArray, views: FloatArray) -> list[FloatArray]:
+        """The lattice poses (x, y, theta) of the ``candidates`` positions near ``estimate``
+        whose stored views match best, each at its best heading, best first."""
+        lat = self.lattice
+        g, o = lat.hypotheses(estimate)
+        c = lat.costs(g, o, pans, views) if g.size else np.zeros(0)
+        order = np.argsort(c, kind="stable")
+        order = order[np.isfinite(c[order])]
+        _, first = np.unique(g[order], return_index=True)  # each position's best hypothesis
+        best = order[np.sort(first)][: self.config.candidates]
+        return [np.array([lat.xy[g[k], 0], lat.xy[g[k], 1], wrap_angle(o[k] * lat.heading_step)]) for k in best]
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """After a filter update with the frame (``delta``, ``pan``, intensity ``features``):

@@ -6,8 +6,9 @@ matches a set of views best (:meth:`lino_loc.view_match.ViewLattice.match`), the
 lies near it, and the appearance between lattice poses is interpolated from theirs, as the
 paper's reference [8] (Murase & Nayar, parametric eigenspace) interpolates the appearance
 manifold between sampled poses: trilinearly, over the 3 x 3 lattice positions around the
-match and the headings one step either side of it. With ``y(p, t)`` that interpolation at
-position p and camera heading t, the views ``y_i`` taken at pans ``u_i`` are placed at
+match and, for each view, the two stored headings its camera heading falls between. With
+``y(p, t)`` that interpolation at position p and camera heading t, the views ``y_i`` taken
+at pans ``u_i`` are placed at
 
     argmin over (p, o) of  sum_i |y_i - y(p, o + u_i)|^2
 
@@ -15,15 +16,21 @@ searched on a grid: positions within one spacing of the match every ``h / SUBCEL
 robot headings within half a heading step of it every ``dtheta / (2 HEADING_STEPS)``.
 Bilinear interpolation in (x, y) is the product of the tent functions
 ``max(0, 1 - |s - i|)`` along each axis (s in spacings, i in {-1, 0, 1}), and linear
-interpolation in heading the tent along it. A lattice point missing around the match (a wall,
-the map's edge, a heading the survey lacks) excludes the poses that would interpolate from it.
+interpolation in heading the tent along it, at each view's own camera heading ``o + u_i``:
+the pans need not be multiples of the heading step, and rounding them to it would turn each
+view by up to half a step, which the position would absorb. A lattice point missing around
+the match (a wall, the map's edge, a heading the survey lacks) excludes the poses that would
+interpolate from it.
 
 For each heading the cost is a quadratic form in the interpolation weights ``w`` (S, 9):
 ``w G w^T - 2 w b + |v|^2`` with ``G = Y Y^T`` and ``b = Y v`` over the 9 lattice views ``Y``
-(9, k d) and the views ``v``, so the search costs (9 x 9) products, not one fit per pose.
+(9, k d) at that heading and the views ``v``, so the search costs (9 x 9) products, not one
+fit per pose.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,41 +54,58 @@ def _tent(s: FloatArray, nodes: FloatArray) -> FloatArray:
     return np.maximum(0.0, 1.0 - np.abs(s[:, None] - nodes[None, :]))
 
 
-def _grid() -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Position offsets (S, 2) in spacings and their bilinear weights (S, 9); heading offsets
-    (T,) in heading steps and their weights (T, 3) on the headings -1, 0, +1."""
+def _grid() -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Position offsets (S, 2) in spacings and their bilinear weights (S, 9); robot heading
+    offsets (T,) in heading steps."""
     s = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1)
     sx, sy = (a.ravel() for a in np.meshgrid(s, s, indexing="ij"))
     w_pos = _tent(sx, NEIGHBOURS[:, 0]) * _tent(sy, NEIGHBOURS[:, 1])
     t = np.linspace(-0.5, 0.5, 2 * HEADING_STEPS + 1)
-    return np.stack([sx, sy], axis=1), w_pos, t, _tent(t, np.array([-1.0, 0.0, 1.0]))
+    return np.stack([sx, sy], axis=1), w_pos, t
 
 
-POSITION_OFFSETS, POSITION_WEIGHTS, HEADING_OFFSETS, HEADING_WEIGHTS = _grid()
+POSITION_OFFSETS, POSITION_WEIGHTS, HEADING_OFFSETS = _grid()
 
 
-def subcell_pose(lattice: ViewLattice, tree: cKDTree, spacing: float, pose: FloatArray,
-                 pans: FloatArray, views: FloatArray) -> FloatArray:
+def _heading_views(lattice: ViewLattice, g: NDArray[np.int64], o: int,
+                   pans: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The stored views of the 9 lattice positions ``g`` interpolated in camera heading, for
+    every robot heading tried (``o`` + :data:`HEADING_OFFSETS` steps) and every pan: (T, 9, k d);
+    and which (T, 9) interpolate from a missing view. Each view's camera heading
+    ``theta + u_i`` falls between two stored headings, at its own fraction of a step: pans need
+    not be multiples of the heading step, so each view is interpolated at its own."""
+    u = np.asarray(pans, dtype=np.float64) / lattice.heading_step
+    r = np.floor(u).astype(np.int64)
+    nodes = np.array([-1.0, 0.0, 1.0, 2.0])
+    cols = (o + r[None, :] + nodes.astype(np.int64)[:, None]) % lattice.n_headings  # (4, k)
+    y = lattice.table[g[None, :, None], cols[:, None, :]]  # (4, 9, k, d)
+    w = _tent((HEADING_OFFSETS[:, None] + (u - r)[None, :]).ravel(), nodes).reshape(-1, u.size, 4)  # (T, k, 4)
+    nan = np.isnan(y).any(axis=3)  # (4, 9, k)
+    missing = np.einsum("tkc,cpk->tp", (w > 0.0).astype(np.float64), nan.astype(np.float64)) > 0.0
+    yt = np.einsum("tkc,cpkd->tpkd", w, np.where(nan[..., None], 0.0, y))
+    return yt.reshape(yt.shape[0], 9, -1), missing
+
+
+def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, pose: FloatArray,
+                pans: FloatArray, views: FloatArray) -> tuple[FloatArray, float]:
     """The pose (x, y, theta) near the lattice pose ``pose`` whose interpolated stored views
-    match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module docstring); ``tree``
-    holds the lattice positions, ``spacing`` their spacing (m). ``pose`` itself when every
-    other pose interpolates from a missing point."""
+    match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module docstring), and its
+    cost ``sum_i |y_i - y(p, o + u_i)|^2``; ``tree`` holds the lattice positions, ``spacing``
+    their spacing (m). ``pose`` itself and an infinite cost when every pose around it
+    interpolates from a missing point."""
     dist, g = tree.query(pose[:2] + spacing * NEIGHBOURS)
     o = int(round(pose[2] / lattice.heading_step))
-    cols = np.stack([lattice.predicted(g, np.full(9, (o + c) % lattice.n_headings), pans) for c in (-1, 0, 1)])
-    y = cols.transpose(0, 2, 1, 3).reshape(3, 9, -1)  # (headings -1 0 +1, points, k d)
-    missing = np.isnan(y).any(axis=2) | (dist > 0.25 * spacing)[None, :]  # (3, 9)
-    y = np.where(missing[:, :, None], 0.0, y)
+    yt, missing = _heading_views(lattice, g, o, pans)  # (T, 9, k d), (T, 9)
+    missing |= (dist > 0.25 * spacing)[None, :]
     v = np.asarray(views, dtype=np.float64).reshape(-1)
-    yt = np.tensordot(HEADING_WEIGHTS, y, axes=1)  # (T, 9, k d): each heading's 9 views
     gram, b = yt @ yt.transpose(0, 2, 1), yt @ v  # (T, 9, 9), (T, 9)
     w = POSITION_WEIGHTS
     cost = np.sum((w @ gram) * w, axis=2) - 2.0 * (b @ w.T)  # (T, S): w G w^T - 2 w b
-    gone = (HEADING_WEIGHTS[:, :, None] > 0.0) & missing[None, :, :]  # (T, 3, 9)
-    cost[((w > 0.0)[None, :, :] & gone.any(axis=1)[:, None, :]).any(axis=2)] = np.inf
+    cost[((w > 0.0)[None, :, :] & missing[:, None, :]).any(axis=2)] = np.inf
     ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
-    at = (int(i), int(ti)) if np.isfinite(cost[ti, i]) else (POSITION_OFFSETS.shape[0] // 2, HEADING_STEPS)
+    if not np.isfinite(cost[ti, i]):
+        return np.array(pose, dtype=np.float64, copy=True), math.inf
     out = np.array(pose, dtype=np.float64, copy=True)
-    out[:2] += spacing * POSITION_OFFSETS[at[0]]
-    out[2] = wrap_angle(out[2] + HEADING_OFFSETS[at[1]] * lattice.heading_step)
-    return out
+    out[:2] += spacing * POSITION_OFFSETS[int(i)]
+    out[2] = wrap_angle((o + HEADING_OFFSETS[int(ti)]) * lattice.heading_step)
+    return out, float(cost[ti, i] + v @ v)

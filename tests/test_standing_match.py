@@ -313,6 +313,59 @@ def test_subcell_places_the_position_where_the_interpolated_views_match(subcell:
             assert np.allclose(pose[:2], truth, atol=1e-9)
 
 
+def test_subcell_interpolates_each_view_at_its_own_camera_heading() -> None:
+    """Pans that are no multiples of the map's heading step: each view's camera heading falls
+    at its own fraction between two stored headings. With features linear in the position and
+    in the camera heading, interpolating each view there is exact, so the pose is found on
+    the search grid exactly; rounding the pans to the heading lattice would misplace it."""
+    step = 2.0 * math.pi / HEADINGS
+    h = np.arange(HEADINGS) * step
+    entries = np.array([[x, y, t] for x in np.arange(5) * 0.25 for y in np.arange(5) * 0.25 for t in h])
+
+    def feats(xy: np.ndarray, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=np.float64)
+        return np.column_stack([xy[:, 0] + 0.3 * t, xy[:, 1] - 0.2 * t, t])
+
+    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]))
+    assert isinstance(match, StandingMatch)
+    truth = np.array([0.575, 0.45, h[2]])
+    for pan in (0.3 * step, 1.7 * step, -1.3 * step):
+        match.observe(np.zeros(3), pan, feats(truth[None, :2], np.array([truth[2] + pan]))[0])
+    pose = match.match(np.array([0.5, 0.5, h[2]]))
+    assert pose is not None and np.allclose(pose, truth, atol=1e-9), pose
+
+
+@pytest.mark.parametrize("candidates", [1, 3])
+def test_the_best_fit_among_the_candidate_lattice_points_wins(candidates: int) -> None:
+    """A lattice point away from the truth whose stored views nearly equal the views taken (a
+    distractor) matches best on the lattice; between the lattice points around the truth the
+    interpolated views match exactly. With one candidate the match stays at the distractor;
+    with three, the truth's neighbourhood is refined too and its exact fit wins."""
+    entries, feats = _linear_lattice()
+    truth = np.array([0.575, 0.45])
+    distractor = np.array([0.0, 0.5])  # within 50 cm of the estimate, outside the truth's 3 x 3
+
+    def with_bump(xy: np.ndarray, t: np.ndarray) -> np.ndarray:
+        f = np.column_stack([feats(xy, t), np.zeros(len(xy))])
+        at = np.all(np.abs(xy - distractor) < 1e-9, axis=1)
+        f[at, :2] = truth
+        f[at, 4] = 0.01  # nearly the truth's views, but not quite
+        return f
+
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
+    match = StandingMatch.for_map(entries, with_bump(entries[:, :2], entries[:, 2]),
+                                  StandingMatchConfig(candidates=candidates))
+    assert isinstance(match, StandingMatch)
+    for pan in (0.0, math.pi / 2, -math.pi / 3):
+        match.observe(np.zeros(3), pan, np.append(feats(truth[None], np.array([h[2] + pan]))[0], 0.0))
+    pose = match.match(np.array([0.45, 0.5, h[2]]))
+    assert pose is not None
+    if candidates == 1:
+        assert np.hypot(*(pose[:2] - truth)) > 0.25, pose
+    else:
+        assert np.allclose(pose[:2], truth, atol=1e-9) and pose[2] == pytest.approx(h[2]), pose
+
+
 def test_subcell_does_not_interpolate_from_a_missing_lattice_point() -> None:
     """A lattice point missing next to the match (a wall): the positions that would take its
     views are not tried, so the truth beyond the half cell next to it is not reached and the
