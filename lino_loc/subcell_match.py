@@ -65,6 +65,10 @@ def _grid() -> tuple[FloatArray, FloatArray, FloatArray]:
 
 
 POSITION_OFFSETS, POSITION_WEIGHTS, HEADING_OFFSETS = _grid()
+#: ``w_j w_k`` of every position tried (S, 81): ``w G w^T`` of all of them is one product with G.
+WEIGHT_PAIRS = (POSITION_WEIGHTS[:, :, None] * POSITION_WEIGHTS[:, None, :]).reshape(POSITION_WEIGHTS.shape[0], -1)
+#: Which lattice points each position tried interpolates from (S, 9), as 0 / 1.
+SUPPORT = (POSITION_WEIGHTS > 0.0).astype(np.float64)
 
 
 def _heading_views(lattice: ViewLattice, g: NDArray[np.int64], o: int,
@@ -99,9 +103,8 @@ def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, pose: Float
     missing |= (dist > 0.25 * spacing)[None, :]
     v = np.asarray(views, dtype=np.float64).reshape(-1)
     gram, b = yt @ yt.transpose(0, 2, 1), yt @ v  # (T, 9, 9), (T, 9)
-    w = POSITION_WEIGHTS
-    cost = np.sum((w @ gram) * w, axis=2) - 2.0 * (b @ w.T)  # (T, S): w G w^T - 2 w b
-    cost[((w > 0.0)[None, :, :] & missing[:, None, :]).any(axis=2)] = np.inf
+    cost = gram.reshape(gram.shape[0], -1) @ WEIGHT_PAIRS.T - 2.0 * (b @ POSITION_WEIGHTS.T)  # (T, S): w G w^T - 2 w b
+    cost[missing.astype(np.float64) @ SUPPORT.T > 0.0] = np.inf
     ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
     if not np.isfinite(cost[ti, i]):
         return np.array(pose, dtype=np.float64, copy=True), math.inf

@@ -91,7 +91,6 @@ def translate_dataset(
     overwrite: bool = False,
     progress: ProgressFn | None = None,
     workers: int = 1,
-    cover: bool = False,
 ) -> TranslationReport:
     """Write ``dataset`` seen from the lattice of its cells to the folder ``out`` (see the
     module docstring). ``refinement``: odd m >= 1 (m^2 lattice positions per cell); ``step``:
@@ -100,12 +99,17 @@ def translate_dataset(
     ``progress(done, total)`` per source row. An ``out`` holding an interrupted run's journal
     is continued (unless ``overwrite``). ``workers`` > 1 warps the rows in that many forked
     processes (where the platform can fork); the rows are written in order and are the same
-    bytes as with one. ``cover``: also the free lattice positions of the cells the survey
-    could not stand in, each seen from its nearest survey position
-    (:mod:`lino_loc.lattice_cover`); it needs ``keep`` (a floor plan's free space: without
-    one, an unsurveyed cell may lie beyond a wall)."""
-    _check(dataset, refinement, workers, cover and keep is None)
+    bytes as with one."""
+    lattice_offsets(1.0, refinement)  # the refinement's check, before anything is written
+    if workers < 1:
+        raise LinoLocError(f"workers must be at least 1 (got {workers})")
     cam = dataset.meta.camera
+    if not dataset.has_disparity:
+        raise LinoLocError(f"{dataset.root}: no disparity column; virtual translations need the survey's "
+                           "stereo disparity (lino-loc survey --stereo)")
+    if not cam.baseline_m:
+        raise LinoLocError(f"{dataset.root}: dataset.json: camera.baseline_m is not set; the disparity "
+                           "cannot be turned into depth")
     spacing = survey_spacing(dataset.poses) if step is None else float(step)
     if not spacing > 0.0:
         raise LinoLocError(f"the survey step must be positive (got {step})")
@@ -118,8 +122,7 @@ def translate_dataset(
     })
     n = len(dataset)
     job = _Job(dataset, intrinsics, float(cam.baseline_m), spacing, int(refinement), keep,
-               heading_neighbours(dataset.poses, labels=dataset.conditions),  # views under one light only
-               np.unique(np.round(dataset.poses[:, :2], 6), axis=0) if cover else None)
+               heading_neighbours(dataset.poses, labels=dataset.conditions))  # views under one light only
     with DatasetWriter(out, meta, overwrite=overwrite, journal=True) as writer:
         done, first, fallbacks = _resume_state(writer.extras)
         resumed = len(writer)
@@ -140,21 +143,6 @@ def translate_dataset(
                              refinement=int(refinement), resumed=resumed)
 
 
-def _check(dataset: Dataset, refinement: int, workers: int, cover_without_plan: bool) -> None:
-    """:func:`translate_dataset`'s arguments checked before anything is written (LinoLocError)."""
-    if cover_without_plan:
-        raise LinoLocError("virtual translations: covering the unsurveyed cells needs the floor plan's free space (keep)")
-    lattice_offsets(1.0, refinement)  # the refinement's check
-    if workers < 1:
-        raise LinoLocError(f"workers must be at least 1 (got {workers})")
-    if not dataset.has_disparity:
-        raise LinoLocError(f"{dataset.root}: no disparity column; virtual translations need the survey's "
-                           "stereo disparity (lino-loc survey --stereo)")
-    if not dataset.meta.camera.baseline_m:
-        raise LinoLocError(f"{dataset.root}: dataset.json: camera.baseline_m is not set; the disparity "
-                           "cannot be turned into depth")
-
-
 @dataclass(frozen=True)
 class _Job:
     """What warping one source row needs: the dataset, its camera, the lattice and each row's
@@ -167,7 +155,6 @@ class _Job:
     refinement: int
     keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None
     near: list[tuple[int, ...]]
-    survey_xy: NDArray[np.float64] | None  # every survey position, to cover the unsurveyed cells
 
 
 @dataclass(frozen=True)
@@ -186,8 +173,7 @@ def _moved_row(job: _Job, i: int) -> _Row:
     ds = job.dataset
     others = [(ds.image(k), _disparity(ds, k), ds.poses[k]) for k in job.near[i]]
     moved = translate_survey(ds.image(i)[None], _disparity(ds, i)[None], ds.poses[i][None], job.intrinsics,
-                             job.baseline_m, job.step, job.refinement, keep=job.keep, neighbours=[others],
-                             survey_xy=job.survey_xy)
+                             job.baseline_m, job.step, job.refinement, keep=job.keep, neighbours=[others])
     return _Row(np.stack([as_uint8(im) for im in moved.images]), moved.disparities, moved.poses, moved.fallbacks)
 
 

@@ -34,7 +34,6 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 
 from lino_loc.errors import LinoLocError
-from lino_loc.lattice_cover import cover_offsets
 from lino_loc.poses import wrap_angle
 
 FloatImage = NDArray[np.float32]
@@ -259,7 +258,6 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
                      refinement: int, keep: Callable[[NDArray[np.float64]], NDArray[np.bool_]] | None = None,
                      transform: Callable[[FloatImage], np.ndarray] | None = None,
                      neighbours: Sequence[Sequence[tuple[ArrayLike, ArrayLike, ArrayLike]]] | None = None,
-                     survey_xy: ArrayLike | None = None,
                      ) -> TranslatedSurvey:
     """Every survey view (``greys`` (N, H, W), its sparse disparity (N, h, w) in pixels of the
     grey image, its robot pose (N, 3)) seen from each :func:`lattice_offsets` of its cell, same
@@ -269,8 +267,8 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
     positions (e.g. not free); the offsets kept depend on the position alone, so every lattice
     position holds the same headings as its survey position (the map stays a product grid of
     positions x headings, which the action evaluation's fast path needs). Where a view cannot
-    be warped (no disparity, or nothing lands in the moved camera) the survey view and its
-    disparity stand for it.
+    be warped (its disparity has no value, or nothing lands in the moved camera) the survey
+    view and its disparity stand for it, as in a map without translations.
 
     A moved view's holes (the borders a move uncovers) are filled from the survey's views at
     the same position and the nearest headings (:func:`translate_view`'s ``others``, each
@@ -279,8 +277,7 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
     :func:`heading_neighbours` among the images given.
 
     With ``transform``, ``transform(image)`` of each view is kept (e.g. the map's working
-    vector). ``survey_xy`` (S, 2), every survey position: each view is also seen from the
-    positions it covers in unsurveyed cells (:func:`lino_loc.lattice_cover.cover_offsets`)."""
+    vector), so the full-size views are never all held."""
     g = np.asarray(greys)
     d = np.asarray(disparities, dtype=np.float32)
     p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
@@ -290,13 +287,14 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
     images: list[np.ndarray] = []
     disps: list[np.ndarray] = []
     out_poses: list[np.ndarray] = []
-    fallbacks, keep_as = 0, transform or (lambda im: im)
+    fallbacks = 0
+    keep_as = transform or (lambda im: im)
     if neighbours is None:
         neighbours = [[(g[k], d[k], p[k]) for k in near] for near in heading_neighbours(p)]
     elif len(neighbours) != p.shape[0]:
         raise LinoLocError(f"translate_survey: {len(neighbours)} neighbour lists for {p.shape[0]} images")
-    for img, disp, pose, near, here in zip(g, d, p, neighbours, _lattices(p, offsets, survey_xy, step), strict=True):
-        targets = np.column_stack([pose[0] + here[:, 0], pose[1] + here[:, 1], np.full(len(here), pose[2])])
+    for img, disp, pose, near in zip(g, d, p, neighbours, strict=True):
+        targets = np.column_stack([pose[0] + offsets[:, 0], pose[1] + offsets[:, 1], np.full(len(offsets), pose[2])])
         ok = np.ones(len(targets), dtype=bool) if keep is None else np.asarray(keep(targets[:, :2]), dtype=bool)
         source = keep_as(np.asarray(img, dtype=np.float32))
         images.append(source)
@@ -314,16 +312,6 @@ def translate_survey(greys: ArrayLike, disparities: ArrayLike, poses: ArrayLike,
                 disps.append(moved[1])
             out_poses.append(t)
     return TranslatedSurvey(np.asarray(images), np.asarray(disps, dtype=np.float32), np.asarray(out_poses), fallbacks)
-
-
-def _lattices(poses: NDArray[np.float64], offsets: NDArray[np.float64], survey_xy: ArrayLike | None,
-              step: float) -> list[NDArray[np.float64]]:
-    """Per pose the offsets its view is seen from: its cell's lattice, and with ``survey_xy``
-    those its position covers in unsurveyed neighbouring cells (computed once per position)."""
-    xy, inverse = np.unique(np.round(poses[:, :2], 6), axis=0, return_inverse=True)
-    per_position = [offsets if survey_xy is None else
-                    np.concatenate([offsets, cover_offsets(q, survey_xy, step, offsets)]) for q in xy]
-    return [per_position[i] for i in np.ravel(inverse)]
 
 
 def _moved_views(img: np.ndarray, disp: np.ndarray, pose: np.ndarray, targets: np.ndarray,

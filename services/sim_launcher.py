@@ -323,15 +323,14 @@ def _code_fingerprint() -> str:
 def _translated(world: Any, dataset: Any, out: Path, build: MapBuildConfig) -> Any:
     """The survey seen from the lattice every ``build.step / build.translations`` inside its cells
     (:func:`lino_loc.translated_dataset.translate_dataset`), lattice positions kept where the
-    world's floor is free inside the mapped area (the floor plan a simulated building has), the
-    free floor of the cells the survey could not stand in covered from their neighbours
-    (:mod:`lino_loc.lattice_cover`), warped on every CPU."""
+    world's floor is free inside the mapped area (the floor plan a simulated building has), warped
+    on every CPU."""
     from lino_loc.dataset import Dataset
     from lino_loc.translated_dataset import translate_dataset
 
     report = translate_dataset(dataset, out, build.translations, step=build.step,
                                keep=lambda xy: world.is_mapped_free(xy[:, 0], xy[:, 1]), overwrite=True,
-                               workers=os.cpu_count() or 1, cover=True)
+                               workers=os.cpu_count() or 1)
     log.info("virtual translations: %d survey images -> %d map images (%d fell back to the survey view)",
              report.rows_in, report.rows_out, report.fallbacks)
     return Dataset.open(out)

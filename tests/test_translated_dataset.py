@@ -70,18 +70,6 @@ def test_every_row_is_seen_from_its_cells_lattice_with_its_disparity(survey: Pat
     assert len(amap) == len(out) and set(amap.channels) == {"intensity", "disparity"}
 
 
-def test_covering_the_unsurveyed_cells_needs_a_floor_plan(survey: Path, tmp_path: Path) -> None:
-    """Without the floor plan's free space an unsurveyed cell may lie beyond a wall: refused
-    before anything is written; with it, the free floor beside the survey is seen too."""
-    with pytest.raises(LinoLocError, match="floor plan"):
-        translate_dataset(Dataset.open(survey), tmp_path / "no", refinement=3, cover=True)
-    assert not (tmp_path / "no").exists()
-    src = Dataset.open(survey)
-    plain = translate_dataset(src, tmp_path / "t3", refinement=3, keep=lambda xy: np.ones(len(xy), bool))
-    cover = translate_dataset(src, tmp_path / "c3", refinement=3, keep=lambda xy: np.ones(len(xy), bool), cover=True)
-    assert cover.rows_out > plain.rows_out and len(Dataset.open(tmp_path / "c3")) == cover.rows_out
-
-
 def test_an_interrupted_translation_continues_where_it_stopped(survey: Path, tmp_path: Path) -> None:
     src = Dataset.open(survey)
     whole = translate_dataset(src, tmp_path / "whole", refinement=3)

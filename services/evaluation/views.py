@@ -273,9 +273,7 @@ def build_sim_maps(
     with ``disparity_features`` features (default ``features``). ``translations`` m > 1 (odd):
     every survey view is also seen from the lattice of spacing ``step / m`` inside its cell by
     virtual translations with its own sparse disparity
-    (:func:`lino_loc.virtual_translations.translate_survey`; the free lattice positions of the
-    cells the survey could not stand in are seen from their nearest survey position,
-    :mod:`lino_loc.lattice_cover`), the disparity channel by moving
+    (:func:`lino_loc.virtual_translations.translate_survey`), the disparity channel by moving
     that sparse disparity itself. ``memory_budget_mb``: the disparity EM's memory budget
     (:func:`lino_loc.appearance_map.disparity_fit_rows`; None: the map builder's default).
     """
@@ -336,7 +334,7 @@ def build_sim_maps(
         # each view warped once, whatever the number of preprocessings
         moved = translate_survey(greys, disps, poses, (fx, fy, cx, cy), cam.baseline_m, step, translations,
                                  keep=lambda xy: w.is_mapped_free(xy[:, 0], xy[:, 1]),
-                                 transform=vectors_of, survey_xy=np.unique(poses[:, :2], axis=0))
+                                 transform=vectors_of)
         poses = moved.poses
         vectors = dict(zip(missing, np.split(moved.images, len(missing), axis=1), strict=True))
         if disparity:  # the moved disparity maps are already at the working size
