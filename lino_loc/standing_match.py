@@ -54,7 +54,6 @@ from scipy.spatial import cKDTree
 from lino_loc.active_vision import ActionValues
 from lino_loc.lost_detection import base_stands
 from lino_loc.pose_estimate import Estimate
-from lino_loc.poses import wrap_angle
 from lino_loc.subcell_match import subcell_fit
 from lino_loc.view_match import ViewLattice, ViewMatchConfig
 from lino_loc.view_spread import spread_values
@@ -190,20 +189,8 @@ class StandingMatch:
         if not self.config.subcell or self.spacing <= 0.0:
             return self.lattice.match(est, pans, views)
         fits = [subcell_fit(self.lattice, self._tree, self.spacing, p, pans, views)
-                for p in self._candidates(est, pans, views)]
+                for p in self.lattice.best_poses(est, pans, views, self.config.candidates)]
         return min(fits, key=lambda f: f[1])[0] if fits else None
-
-    def _candidates(self, estimate: FloatArray, pans: FloatArray, views: FloatArray) -> list[FloatArray]:
-        """The lattice poses (x, y, theta) of the ``candidates`` positions near ``estimate``
-        whose stored views match best, each at its best heading, best first."""
-        lat = self.lattice
-        g, o = lat.hypotheses(estimate)
-        c = lat.costs(g, o, pans, views) if g.size else np.zeros(0)
-        order = np.argsort(c, kind="stable")
-        order = order[np.isfinite(c[order])]
-        _, first = np.unique(g[order], return_index=True)  # each position's best hypothesis
-        best = order[np.sort(first)][: self.config.candidates]
-        return [np.array([lat.xy[g[k], 0], lat.xy[g[k], 1], wrap_angle(o[k] * lat.heading_step)]) for k in best]
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """After a filter update with the frame (``delta``, ``pan``, intensity ``features``):

@@ -161,13 +161,22 @@ class ViewLattice:
         lp = lp[keep] - np.logaddexp.reduce(lp[keep])
         return g[keep], o[keep], lp, s2
 
+    def best_poses(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray, k: int) -> list[np.ndarray]:
+        """The poses (x, y, theta) of the ``k`` map positions near ``estimate`` whose stored views
+        match ``views`` best, each at its best heading, best first (fewer when fewer have every
+        view)."""
+        g, o = self.hypotheses(estimate)
+        c = self.costs(g, o, np.atleast_1d(pans), np.atleast_2d(np.asarray(views, dtype=np.float64)))
+        order = np.argsort(c, kind="stable")
+        order = order[np.isfinite(c[order])]
+        _, first = np.unique(g[order], return_index=True)  # each position's best hypothesis
+        best = order[np.sort(first)][:k]
+        return [np.array([self.xy[g[i], 0], self.xy[g[i], 1], wrap_angle(o[i] * self.heading_step)]) for i in best]
+
     def match(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray | None:
         """The decision: the pose (x, y, theta) of the best-matching hypothesis, None when there is none."""
-        post = self.posterior(estimate, pans, views)
-        if post is None:
-            return None
-        g, o, _, _ = post
-        return np.array([self.xy[g[0], 0], self.xy[g[0], 1], wrap_angle(o[0] * self.heading_step)])
+        best = self.best_poses(estimate, pans, views, 1)
+        return best[0] if best else None
 
     def expected_entropy(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray,
                          actions: np.ndarray) -> np.ndarray | None:
