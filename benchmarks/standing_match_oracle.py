@@ -13,7 +13,9 @@ position error (m). The sets:
   (:mod:`lino_loc.view_spread`, the service's choice while the match acts);
 - ``random``: a0 and three other pans drawn at random (seeded).
 
-It isolates the match's precision and the views' choice from the filter. Prints one JSON object.
+It isolates the match's precision and the views' choice from the filter. It also times the
+match itself on the product's map (``match_ms``: median and 90th percentile of one
+:meth:`StandingMatch.match` of four views, wall clock, with the machine). Prints one JSON object.
 
 Usage::
 
@@ -43,6 +45,7 @@ def main() -> None:
     from lino_loc.view_spread import spread_values
     from services.evaluation import active
     from services.evaluation.active_setup import product_defaults
+    from services.evaluation.machine import machine
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--world", default="office")
@@ -71,6 +74,7 @@ def main() -> None:
     n_a = pans.size
     rng = np.random.default_rng(a.seed)
     out: dict[str, list[tuple[float, bool]]] = {"sweep": [], "spread": [], "random": []}
+    match_s: list[float] = []
     for i, truth in enumerate(truths):
         for a0 in range(n_a):
             spread = [a0]
@@ -83,7 +87,9 @@ def main() -> None:
                 match.reset()
                 for k in idx:
                     match.observe(np.zeros(3), float(pans[k]), feats[i, k])
+                t = time.perf_counter()
                 m = match.match(truth)
+                match_s.append(time.perf_counter() - t)
                 assert m is not None
                 out[name].append((float(np.hypot(*(m[:2] - truth[:2]))),
                                   bool(success(m[None], truth[None], grid)[0])))
@@ -93,6 +99,9 @@ def main() -> None:
     print(json.dumps({"benchmark": "standing_match_oracle", "world": a.world, "seed": a.seed, "subcell": a.subcell,
                       "candidates": setup.standing_match.candidates,
                       "positions": int(truths.shape[0]), "first_pans": n_a, "sets": report,
+                      "match_ms": {"median": round(1e3 * float(np.median(match_s)), 3),
+                                   "p90": round(1e3 * float(np.percentile(match_s, 90)), 3)},
+                      "machine": machine(),
                       "seconds": round(time.perf_counter() - t0, 1)}))
 
 

@@ -188,9 +188,9 @@ class StandingMatch:
         est = np.asarray(estimate, dtype=np.float64)
         if not self.config.subcell or self.spacing <= 0.0:
             return self.lattice.match(est, pans, views)
-        fits = [subcell_fit(self.lattice, self._tree, self.spacing, p, pans, views)
-                for p in self.lattice.best_poses(est, pans, views, self.config.candidates)]
-        return min(fits, key=lambda f: f[1])[0] if fits else None
+        candidates = self.lattice.best_poses(est, pans, views, self.config.candidates)
+        return subcell_fit(self.lattice, self._tree, self.spacing, np.stack(candidates), pans, views)[0] \
+            if candidates else None
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """After a filter update with the frame (``delta``, ``pan``, intensity ``features``):

@@ -71,44 +71,47 @@ WEIGHT_PAIRS = (POSITION_WEIGHTS[:, :, None] * POSITION_WEIGHTS[:, None, :]).res
 SUPPORT = (POSITION_WEIGHTS > 0.0).astype(np.float64)
 
 
-def _heading_views(lattice: ViewLattice, g: NDArray[np.int64], o: int,
+def _heading_views(lattice: ViewLattice, g: NDArray[np.int64], o: NDArray[np.int64],
                    pans: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """The stored views of the 9 lattice positions ``g`` interpolated in camera heading, for
-    every robot heading tried (``o`` + :data:`HEADING_OFFSETS` steps) and every pan: (T, 9, k d);
-    and which (T, 9) interpolate from a missing view. Each view's camera heading
-    ``theta + u_i`` falls between two stored headings, at its own fraction of a step: pans need
-    not be multiples of the heading step, so each view is interpolated at its own."""
+    """The stored views of each candidate's 9 lattice positions ``g`` (C, 9) interpolated in
+    camera heading, for every robot heading tried (``o`` (C,) + :data:`HEADING_OFFSETS` steps)
+    and every pan: (C, T, 9, k d); and which (C, T, 9) interpolate from a missing view. Each
+    view's camera heading ``theta + u_i`` falls between two stored headings, at its own
+    fraction of a step: pans need not be multiples of the heading step, so each view is
+    interpolated at its own."""
     u = np.asarray(pans, dtype=np.float64) / lattice.heading_step
     r = np.floor(u).astype(np.int64)
     nodes = np.array([-1.0, 0.0, 1.0, 2.0])
-    cols = (o + r[None, :] + nodes.astype(np.int64)[:, None]) % lattice.n_headings  # (4, k)
-    y = lattice.table[g[None, :, None], cols[:, None, :]]  # (4, 9, k, d)
+    cols = (o[:, None, None] + r[None, None, :] + nodes.astype(np.int64)[None, :, None]) % lattice.n_headings
+    y = lattice.table[g[:, None, :, None], cols[:, :, None, :]]  # (C, 4, 9, k, d)
     w = _tent((HEADING_OFFSETS[:, None] + (u - r)[None, :]).ravel(), nodes).reshape(-1, u.size, 4)  # (T, k, 4)
-    nan = np.isnan(y).any(axis=3)  # (4, 9, k)
-    missing = np.einsum("tkc,cpk->tp", (w > 0.0).astype(np.float64), nan.astype(np.float64)) > 0.0
-    yt = np.einsum("tkc,cpkd->tpkd", w, np.where(nan[..., None], 0.0, y))
-    return yt.reshape(yt.shape[0], 9, -1), missing
+    nan = np.isnan(y).any(axis=4)  # (C, 4, 9, k)
+    missing = np.einsum("tkc,Ccpk->Ctp", (w > 0.0).astype(np.float64), nan.astype(np.float64)) > 0.0
+    yt = np.einsum("tkc,Ccpkd->Ctpkd", w, np.where(nan[..., None], 0.0, y))
+    return yt.reshape(*yt.shape[:3], -1), missing
 
 
-def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, pose: FloatArray,
+def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, poses: FloatArray,
                 pans: FloatArray, views: FloatArray) -> tuple[FloatArray, float]:
-    """The pose (x, y, theta) near the lattice pose ``pose`` whose interpolated stored views
-    match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module docstring), and its
-    cost ``sum_i |y_i - y(p, o + u_i)|^2``; ``tree`` holds the lattice positions, ``spacing``
-    their spacing (m). ``pose`` itself and an infinite cost when every pose around it
-    interpolates from a missing point."""
-    dist, g = tree.query(pose[:2] + spacing * NEIGHBOURS)
-    o = int(round(pose[2] / lattice.heading_step))
-    yt, missing = _heading_views(lattice, g, o, pans)  # (T, 9, k d), (T, 9)
-    missing |= (dist > 0.25 * spacing)[None, :]
+    """The pose (x, y, theta) near one of the lattice poses ``poses`` (C, 3) whose interpolated
+    stored views match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module
+    docstring), and its cost ``sum_i |y_i - y(p, o + u_i)|^2``; ``tree`` holds the lattice
+    positions, ``spacing`` their spacing (m). All candidates are searched together and the
+    best fit wins (ties: the earlier candidate). The first candidate itself and an infinite
+    cost when every pose around every candidate interpolates from a missing point."""
+    poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))
+    dist, g = tree.query(poses[:, None, :2] + spacing * NEIGHBOURS[None, :, :])  # (C, 9)
+    o = np.round(poses[:, 2] / lattice.heading_step).astype(np.int64)
+    yt, missing = _heading_views(lattice, g, o, pans)  # (C, T, 9, k d), (C, T, 9)
+    missing |= (dist > 0.25 * spacing)[:, None, :]
     v = np.asarray(views, dtype=np.float64).reshape(-1)
-    gram, b = yt @ yt.transpose(0, 2, 1), yt @ v  # (T, 9, 9), (T, 9)
-    cost = gram.reshape(gram.shape[0], -1) @ WEIGHT_PAIRS.T - 2.0 * (b @ POSITION_WEIGHTS.T)  # (T, S): w G w^T - 2 w b
+    gram, b = yt @ yt.swapaxes(-1, -2), yt @ v  # (C, T, 9, 9), (C, T, 9)
+    cost = gram.reshape(*gram.shape[:2], -1) @ WEIGHT_PAIRS.T - 2.0 * (b @ POSITION_WEIGHTS.T)  # (C, T, S)
     cost[missing.astype(np.float64) @ SUPPORT.T > 0.0] = np.inf
-    ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
-    if not np.isfinite(cost[ti, i]):
-        return np.array(pose, dtype=np.float64, copy=True), math.inf
-    out = np.array(pose, dtype=np.float64, copy=True)
+    c, ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    if not np.isfinite(cost[c, ti, i]):
+        return poses[0].copy(), math.inf
+    out = poses[c].copy()
     out[:2] += spacing * POSITION_OFFSETS[int(i)]
-    out[2] = wrap_angle((o + HEADING_OFFSETS[int(ti)]) * lattice.heading_step)
-    return out, float(cost[ti, i] + v @ v)
+    out[2] = wrap_angle((o[c] + HEADING_OFFSETS[int(ti)]) * lattice.heading_step)
+    return out, float(cost[c, ti, i] + v @ v)

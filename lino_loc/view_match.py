@@ -104,6 +104,8 @@ class ViewLattice:
         self.config = config or ViewMatchConfig()
         self.xy, self.table, self.heading_step = views_by_position(e, f)
         self.n_headings = self.table.shape[1]
+        #: |y(g, t)|^2 (G, H), NaN where the view is missing: the stored half of :meth:`costs`
+        self.norms = np.einsum("ghd,ghd->gh", self.table, self.table)
         self.neighbour_change = self._neighbour_change()
         self.s2 = self.config.noise * f.shape[1] * self.neighbour_change
 
@@ -137,9 +139,19 @@ class ViewLattice:
         return self.table[g[None, :], cols]
 
     def costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
-        """``c(h)`` (C,) of the views (k, d) taken at ``pans`` (k,); inf where a stored view is missing."""
-        diff = self.predicted(g, o, pans) - np.asarray(views, dtype=np.float64)[:, None, :]
-        c = np.sum(diff * diff, axis=(0, 2))
+        """``c(h)`` (C,) of the views (k, d) taken at ``pans`` (k,); inf where a stored view is missing.
+
+        Expanded as ``sum_i |y_i|^2 + |y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)``: the dot
+        products of the views with every stored view of the hypotheses' positions are one
+        matrix product, so only scalars are gathered per hypothesis and view."""
+        v = np.atleast_2d(np.asarray(views, dtype=np.float64))
+        pos, at = np.unique(np.asarray(g, dtype=np.int64), return_inverse=True)
+        at = at.reshape(-1)
+        dots = self.table[pos] @ v.T  # (positions, H, k)
+        cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, C)
+        views_at = np.arange(v.shape[0])[:, None]
+        c = np.sum(self.norms[pos][at[None, :], cols] - 2.0 * dots[at[None, :], cols, views_at], axis=0)
+        c = np.maximum(c + float(np.sum(v * v)), 0.0)
         return np.where(np.isnan(c), np.inf, c)
 
     def posterior(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray

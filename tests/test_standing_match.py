@@ -16,7 +16,7 @@ from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.sensor_model import Bounds, SensorModelConfig
 from lino_loc.standing_match import StandingMatch, StandingMatchConfig
-from lino_loc.subcell_match import SUBCELL_STEPS
+from lino_loc.subcell_match import SUBCELL_STEPS, subcell_fit
 from lino_loc.view_spread import separation
 from tests.test_localizer import Channel, TinyMap, _feature_fn
 
@@ -364,6 +364,24 @@ def test_the_best_fit_among_the_candidate_lattice_points_wins(candidates: int) -
         assert np.hypot(*(pose[:2] - truth)) > 0.25, pose
     else:
         assert np.allclose(pose[:2], truth, atol=1e-9) and pose[2] == pytest.approx(h[2]), pose
+
+
+def test_the_fit_over_several_candidates_is_the_best_of_their_own_fits() -> None:
+    """``subcell_fit`` searches the candidates together: its pose and cost are those of the
+    candidate whose own fit costs least (the first of equal ones)."""
+    entries, feats = _linear_lattice()
+    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]) + 0.05 * np.random.default_rng(2).normal(
+        size=(entries.shape[0], 4)))
+    assert isinstance(match, StandingMatch)
+    step = 2.0 * math.pi / HEADINGS
+    pans = np.array([0.3 * step, 2.2 * step, -1.6 * step])
+    views = feats(np.array([[0.6, 0.4]] * 3), 0.2 + pans)
+    poses = np.array([[0.5, 0.5, step], [0.25, 0.5, 0.0], [0.75, 0.25, 2 * step]])
+    one = [subcell_fit(match.lattice, match._tree, match.spacing, p, pans, views) for p in poses]
+    pose, cost = subcell_fit(match.lattice, match._tree, match.spacing, poses, pans, views)
+    best = int(np.argmin([c for _, c in one]))
+    assert cost == pytest.approx(one[best][1], rel=1e-12) and np.allclose(pose, one[best][0])
+    assert len({round(c, 9) for _, c in one}) == 3  # the candidates' own fits differ
 
 
 def test_subcell_does_not_interpolate_from_a_missing_lattice_point() -> None:

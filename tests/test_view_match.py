@@ -81,3 +81,20 @@ def test_the_noise_scale_is_the_change_between_neighbouring_positions() -> None:
     lat = _lattice(f, xy, ViewMatchConfig(noise=2.0))
     assert math.isclose(lat.neighbour_change, 0.5)  # (1^2 + 0^2) / 2
     assert math.isclose(lat.s2, 2.0 * 2 * 0.5)
+
+
+def test_the_costs_are_the_summed_squared_distances_to_the_stored_views() -> None:
+    """``costs`` (expanded into norms and dot products) equals the direct sum over the views of
+    ``|y_i - y(g, o + u_i)|^2``, and is inf where a stored view is missing."""
+    rng = np.random.default_rng(3)
+    xy = np.array([[x, y] for x in (0.0, 0.25, 0.5) for y in (0.0, 0.25)])
+    f = rng.normal(size=(6, HEADINGS, 5))
+    f[2, 3] = np.nan  # one view the survey lacks
+    lat = _lattice(f, xy, ViewMatchConfig(radius=1.0, heading_span=math.pi))
+    g, o = lat.hypotheses(np.array([0.25, 0.1, 0.0]))
+    pans = np.array([0.0, math.pi / 2, -3 * math.pi / 4, math.pi])
+    views = rng.normal(size=(4, 5))
+    direct = np.sum((lat.predicted(g, o, pans) - views[:, None, :]) ** 2, axis=(0, 2))
+    c = lat.costs(g, o, pans, views)
+    assert np.array_equal(np.isnan(direct), np.isinf(c)) and np.isinf(c).sum() == 4  # 4 hypotheses see it
+    assert np.allclose(c[np.isfinite(c)], direct[np.isfinite(direct)], rtol=1e-12, atol=1e-12)
