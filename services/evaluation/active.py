@@ -43,6 +43,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -58,7 +59,6 @@ from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pan_reliability import PanReliability
 from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
-from lino_loc.sensor_model import NearestNeighbourSensorModel
 from lino_loc.standing_match import StandingMatch
 from lino_loc.view_match import ViewLattice
 from lino_loc.virtual_views import crop_columns
@@ -149,7 +149,7 @@ def render_tests(
 _ctx: dict[str, Any] = {}
 
 
-def _init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarray, map_poses: np.ndarray,
+def init_worker(setup: ActiveSetup, entries: np.ndarray, map_features: np.ndarray, map_poses: np.ndarray,
                  disparity_features: np.ndarray | None = None) -> None:
     """``entries``: poses of the sensor model's map entries; ``map_poses``: the survey grid
     (the success criteria's training points); ``disparity_features``: the disparity channel's
@@ -247,22 +247,67 @@ def _values(pf: AuxiliaryParticleFilter, ev: ActionEvaluator, standing: Standing
     return values
 
 
+def new_filter(pos: int, run: int, seed: int | None = None) -> AuxiliaryParticleFilter:
+    """The filter of run ``run`` at test position ``pos``: a uniform belief drawn from the seed
+    (``setup.seed``, pos, run), the same for every strategy (``seed``: another draw)."""
+    setup: ActiveSetup = _ctx["setup"]
+    world: World = _ctx["world"]
+    return AuxiliaryParticleFilter(OdometryMotionModel(setup.motion_config()), _ctx["model"].bounds,
+                                   setup.filter_config(), free_space=lambda xy: world.is_free(xy[:, 0], xy[:, 1]),
+                                   rng=np.random.default_rng((setup.seed, pos, run) if seed is None
+                                                             else (setup.seed, pos, run, seed)))
+
+
+@dataclass
+class Look:
+    """One run's standing robot: its filter, the standing match's views, the per-pan
+    reliability (a no-op when off) and the views taken (pan, mixture, features) for the
+    decision rules. :meth:`take` is one view at a candidate pan, as the service takes it."""
+
+    pf: AuxiliaryParticleFilter
+    standing: StandingMatch | None
+    reliability: PanReliability
+    views: list[tuple[float, Any, np.ndarray]]
+
+    @classmethod
+    def start(cls, pf: AuxiliaryParticleFilter) -> Look:
+        setup: ActiveSetup = _ctx["setup"]
+        base: StandingMatch | None = _ctx["standing"]  # fresh views for each run
+        return cls(pf, None if base is None else StandingMatch(base.lattice, setup.standing_match),
+                   PanReliability(setup.active.reliability), [])
+
+    def take(self, a: int, feats: np.ndarray, dfeats: np.ndarray | None) -> None:
+        """The view at candidate pan ``a`` (``feats``, ``dfeats``: the position's (A, d))."""
+        setup: ActiveSetup = _ctx["setup"]
+        pan = float(setup.active.actions()[a])
+        mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
+        self.reliability.observe(pan, novelty)
+        self.pf.update(np.zeros(3), pan, mix)
+        roughen(self.pf, setup, mix, pan)
+        if self.standing is not None:
+            self.standing.step(self.pf, np.zeros(3), pan, feats[a])
+        self.views.append((pan, mix, feats[a]))
+
+    def entropy_values(self, eval_ms: list[float]) -> ActionValues:
+        """The entropy strategy's action values (:func:`_values`, discounted by the reliability)."""
+        return self.reliability.discount(_values(self.pf, _ctx["evaluator"], self.standing,
+                                                 _ctx["setup"].active.actions(), eval_ms))
+
+    def entropy_choice(self, a: int, eval_ms: list[float]) -> int:
+        """The entropy strategy's next pan from the present one, ``a`` (never ``a`` itself)."""
+        ev: ActionEvaluator = _ctx["evaluator"]
+        pans = _ctx["setup"].active.actions()
+        return self.entropy_values(eval_ms).best(float(pans[a]), ev.config.move_cost, exclude=[a])
+
+
 def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) -> dict[str, Any]:
     """All runs and strategies at one test position: errors and successes (R, moves + 1) per
     strategy, the H(u) evaluation times, and (position 0, run 0) particle snapshots."""
     pos, truth, feats, dfeats = args
     setup: ActiveSetup = _ctx["setup"]
-    world: World = _ctx["world"]
-    model: NearestNeighbourSensorModel | InterpolatedSensorModel = _ctx["model"]
-    ev: ActionEvaluator = _ctx["evaluator"]
     pans = setup.active.actions()
     n_a = pans.size
     step, hstep = setup.judged_step, math.radians(setup.heading_step_deg)
-
-    def free(xy: np.ndarray) -> np.ndarray:
-        return world.is_free(xy[:, 0], xy[:, 1])
-
-    zero = np.zeros(3)
     out: dict[str, Any] = {s: {"error": [], "success": [], "success_pose": [], "heading_error": [], "pans": [],
                                "decisions": {rule: [] for rule in setup.decisions},
                                "decision_error": {rule: [] for rule in setup.decisions}}
@@ -275,48 +320,31 @@ def run_position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None]) ->
     for run in range(setup.runs):
         a0 = int(np.random.default_rng((setup.seed, pos, run, 1)).integers(n_a))
         for strat in setup.strategies:
-            pf = AuxiliaryParticleFilter(OdometryMotionModel(setup.motion_config()), model.bounds, setup.filter_config(),
-                                         free_space=free, rng=np.random.default_rng((setup.seed, pos, run)))
+            pf = new_filter(pos, run)
             choice_rng = np.random.default_rng((setup.seed, pos, run, 2))
             if strat == setup.strategies[0]:  # is some initial particle in the truth's map cell?
                 covered.append(bool(np.any(nearest_map_index(pf.particles, _ctx["map_poses"], step, hstep)
                                            == truth_cell)))
             a = a0
             ests, seq = [], [a]
-            reliability = PanReliability(setup.active.reliability)  # the entropy strategy's (a no-op when off)
-            base: StandingMatch | None = _ctx["standing"]  # fresh views for each run
-            standing = None if base is None else StandingMatch(base.lattice, setup.standing_match)
-            views: list[tuple[float, Any, np.ndarray]] = []  # (pan, mixture, features): the decision rules'
+            look = Look.start(pf)
             decided: dict[str, list[np.ndarray]] = {rule: [] for rule in setup.decisions}
-            mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
-            reliability.observe(float(pans[a]), novelty)
-            pf.update(zero, float(pans[a]), mix)
-            roughen(pf, setup, mix, float(pans[a]))
-            if standing is not None:
-                standing.step(pf, zero, float(pans[a]), feats[a])
-            views.append((float(pans[a]), mix, feats[a]))
-            _estimate(pf, ests, views, decided)
+            look.take(a, feats, dfeats)
+            _estimate(pf, ests, look.views, decided)
             if setup.snapshots and pos == 0 and run == 0 and strat == "entropy":
                 snaps["start"] = (pf.particles.copy(), pf.weights.copy())
             for _ in range(setup.movements):
-                if strat == "lattice" and (b := _lattice_values(pf, views, pans)) is not None:
+                if strat == "lattice" and (b := _lattice_values(pf, look.views, pans)) is not None:
                     a = int(np.argmin(np.where(np.arange(n_a) == a, np.inf, b)))
                 elif strat in ("entropy", "lattice"):
-                    values = reliability.discount(_values(pf, ev, standing, pans, eval_ms))
-                    a = values.best(float(pans[a]), ev.config.move_cost, exclude=[a])
+                    a = look.entropy_choice(a, eval_ms)
                 elif strat == "random":
                     a = int((a + 1 + choice_rng.integers(n_a - 1)) % n_a)
                 else:
                     a = (a + setup.sweep_stride) % n_a
                 seq.append(a)
-                mix, novelty = _observe(feats[a], None if dfeats is None else dfeats[a])
-                reliability.observe(float(pans[a]), novelty)
-                pf.update(zero, float(pans[a]), mix)
-                roughen(pf, setup, mix, float(pans[a]))
-                if standing is not None:
-                    standing.step(pf, zero, float(pans[a]), feats[a])
-                views.append((float(pans[a]), mix, feats[a]))
-                _estimate(pf, ests, views, decided)
+                look.take(a, feats, dfeats)
+                _estimate(pf, ests, look.views, decided)
             est = np.asarray(ests)
             truths = np.repeat(truth[None, :], len(ests), axis=0)
             out[strat]["error"].append(position_errors(est, truths))
@@ -457,14 +485,14 @@ def run_condition(
     workers = setup.workers or os.cpu_count() or 1
     parts: list[dict[str, Any]] = []
     if workers == 1:
-        _init_worker(setup, entries, map_features, map_poses, dmap)
+        init_worker(setup, entries, map_features, map_poses, dmap)
         it = map(run_position, jobs)
         for part in it:
             parts.append(part)
             if progress:
                 progress(label, len(parts), len(jobs))
     else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
+        with ProcessPoolExecutor(max_workers=workers, initializer=init_worker,
                                  initargs=(setup, entries, map_features, map_poses, dmap)) as pool:
             for part in pool.map(run_position, jobs):
                 parts.append(part)
