@@ -110,6 +110,15 @@ class StandingMatchConfig(BaseModel):
     )
 
 
+def gathered(particles: FloatArray, weights: FloatArray, estimate: ArrayLike, radius: float,
+             gate: float) -> NDArray[np.bool_] | None:
+    """The particles within ``radius`` (m) of ``estimate``, None while they hold less than
+    ``gate`` of the weight (the filter has not found the neighbourhood)."""
+    est = np.asarray(estimate, dtype=np.float64)
+    near = np.hypot(particles[:, 0] - est[0], particles[:, 1] - est[1]) <= radius
+    return near if float(np.sum(weights[near])) >= gate else None
+
+
 class StandingMatch:
     """The views since the base stopped, and the belief's place from them (module docstring)."""
 
@@ -211,10 +220,7 @@ class StandingMatch:
         return True
 
     def _near(self, particles: FloatArray, weights: FloatArray, estimate: FloatArray) -> NDArray[np.bool_] | None:
-        """The particles within ``radius`` of ``estimate``, None while they hold less than ``gate``
-        of the weight (the filter has not found the neighbourhood)."""
-        near = np.hypot(particles[:, 0] - estimate[0], particles[:, 1] - estimate[1]) <= self.config.radius
-        return near if float(np.sum(weights[near])) >= self.config.gate else None
+        return gathered(particles, weights, estimate, self.config.radius, self.config.gate)
 
     def recentre(self, particles: FloatArray, weights: FloatArray, estimate: ArrayLike) -> FloatArray | None:
         """The particles (N, 3) with those within ``radius`` of ``estimate`` moved by the matched

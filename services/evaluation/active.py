@@ -59,7 +59,7 @@ from lino_loc.motion_model import OdometryMotionModel
 from lino_loc.pan_reliability import PanReliability
 from lino_loc.particle_filter import AuxiliaryParticleFilter
 from lino_loc.poses import wrap_angle
-from lino_loc.standing_match import StandingMatch
+from lino_loc.standing_match import StandingMatch, gathered
 from lino_loc.view_match import ViewLattice
 from lino_loc.virtual_views import crop_columns
 from services.evaluation import active_stats
@@ -227,8 +227,7 @@ def _lattice_values(pf: AuxiliaryParticleFilter, views: list[tuple[float, Any, n
     than ``setup.lattice_gate`` of the particles' weight lies within the hypotheses' radius."""
     lattice: ViewLattice = _ctx["lattice"]
     est = pf.estimate().pose
-    near = np.hypot(pf.particles[:, 0] - est[0], pf.particles[:, 1] - est[1]) <= lattice.config.radius
-    if float(np.sum(pf.weights[near])) < _ctx["setup"].lattice_gate:
+    if gathered(pf.particles, pf.weights, est, lattice.config.radius, _ctx["setup"].lattice_gate) is None:
         return None
     taken = np.array([v[0] for v in views])
     return lattice.expected_entropy(est, taken, np.stack([v[2] for v in views]), pans)
