@@ -20,7 +20,9 @@ filters. Reported, over positions x runs (success after one movement):
 - ``seed_variance`` and ``pan_variance``: the variance of a single outcome within a pan (over
   filter seeds) and within a run (over pans and seeds): how much of the outcome the pan decides;
 - ``corr_h``: the mean correlation, over the runs where the choice matters, between H(u) and
-  the pans' success (negative: a lower expected entropy goes with success).
+  the pans' success (negative: a lower expected entropy goes with success);
+- ``entropy_minus_random``, ``entropy_minus_sweep``: the paired differences and their standard
+  errors over the test positions.
 
 It measures the room a first-movement chooser has, and how much of it the entropy strategy
 takes. Prints one JSON object.
@@ -72,7 +74,7 @@ def _position(args: tuple[int, np.ndarray, np.ndarray, np.ndarray | None, int, i
                 look.take(a, feats, dfeats)
                 est = look.pf.estimate().pose
                 table[f, a] = float(success(est[None], truth[None], active._ctx["map_poses"])[0])
-        rows.append({"a0": a0, "entropy": first.entropy_choice(a0, []), "sweep": (a0 + setup.sweep_stride) % n_a,
+        rows.append({"pos": pos, "a0": a0, "entropy": first.entropy_choice(a0, []), "sweep": (a0 + setup.sweep_stride) % n_a,
                      "h": values.expected_entropy, "table": table})
     return rows
 
@@ -91,6 +93,9 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     corr = [np.corrcoef(r["h"][np.isfinite(rate[i])], rate[i][np.isfinite(rate[i])])[0, 1]
             for i, r in enumerate(rows) if differs[i] and np.std(r["h"][np.isfinite(rate[i])]) > 0]
     at = np.arange(len(rows))
+    pos = np.array([r.get("pos", i) for i, r in enumerate(rows)])
+    entropy = rate[at, [r["entropy"] for r in rows]]
+    others = {"random": np.nanmean(rate, axis=1), "sweep": rate[at, [r["sweep"] for r in rows]]}
     return {
         "random": round(float(np.mean(np.nanmean(rate, axis=1))), 4),
         "entropy": round(float(np.mean(rate[at, [r["entropy"] for r in rows]])), 4),
@@ -100,7 +105,16 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "seed_variance": round(float(np.mean(np.var(tables, axis=1)[np.isfinite(rate)])), 4),
         "pan_variance": round(float(np.mean([np.nanvar(t) for t in tables])), 4),
         "corr_h": round(float(np.mean(corr)), 3) if corr else None,
+        **{f"entropy_minus_{k}": paired(entropy - v, pos) for k, v in others.items()},
     }
+
+
+def paired(diff: np.ndarray, pos: np.ndarray) -> dict[str, float]:
+    """A paired difference's mean and standard error over test positions (each position's runs
+    averaged first: positions are the independent units)."""
+    per = np.array([diff[pos == p].mean() for p in np.unique(pos)])
+    se = float(per.std(ddof=1) / np.sqrt(per.size)) if per.size > 1 else float("nan")
+    return {"difference": round(float(diff.mean()), 4), "se": round(se, 4)}
 
 
 def main() -> None:

@@ -39,6 +39,10 @@ def test_the_report_of_two_runs() -> None:
     # run 1's rates over pans 1..3 are (1, 0, 0.5) against H (1, 3, 2): perfectly anti-correlated
     assert r["corr_h"] == pytest.approx(-1.0)
     assert r["seed_variance"] == pytest.approx(0.25 / 6, abs=1e-4)  # only run 1's pan 3 varies (p = 0.5) of 6 cells
+    # entropy - random: run 1 1 - 0.5, run 2 0; the two runs are two positions
+    assert r["entropy_minus_random"]["difference"] == pytest.approx(0.25)
+    assert r["entropy_minus_random"]["se"] == pytest.approx(np.std([0.5, 0.0], ddof=1) / np.sqrt(2), abs=1e-4)
+    assert r["entropy_minus_sweep"]["difference"] == pytest.approx(0.25)
 
 
 def test_the_oracle_is_not_inflated_by_noise() -> None:
