@@ -23,7 +23,7 @@ from services.evaluation.machine import machine
 
 PARTICLES = (150, 1000, 10000)
 MAP_SIZES = (400, 4000, 40000)
-#: The head's pans (rad) of the standing robot's views (:func:`_time_standing`).
+#: The head's pans (rad) of the standing robot's views (:func:`time_standing`).
 STANDING_PANS = (0.0, 0.8, 1.6, 2.4, -0.8, -1.6, -2.4, 0.4)
 
 
@@ -67,7 +67,7 @@ def _time_updates(amap: Any, n_particles: int, frames: Any, repeats: int, warmup
     return out
 
 
-def _time_standing(amap: Any, n_particles: int, views: Any, pose: Any, repeats: int,
+def time_standing(amap: Any, n_particles: int, views: Any, pose: Any, repeats: int,
                    warmup: int = 40) -> dict[str, Any]:
     """Time updates of a STANDING robot whose head turns: ``views`` (K images) taken at
     ``pose`` at the pans of :data:`STANDING_PANS` in turn, zero odometry, with the standing
@@ -163,7 +163,7 @@ def run_update_bench(
     drive (tests use tiny ones); ``standing_views``, the standing robot's views (default: rendered
     at the drive's first pose at :data:`STANDING_PANS`, or the first frames when ``frames`` is
     given). ``standing_ms``: a standing robot's update at 1000 particles with the standing match
-    on and off (:func:`_time_standing`)."""
+    on and off (:func:`time_standing`)."""
     import numpy as np
 
     try:
@@ -221,7 +221,7 @@ def run_update_bench(
         entry.update({"entries": len(m), "synthetic": synthetic, "index": model.index_kind,
                       "search_median_ms": _time_search(model, queries, 200)})
         result["map_scaling"][str(size)] = entry
-    result["standing_ms"] = _time_standing(amap, 1000, standing_views, frames[2][0], max(20, repeats // 2))
+    result["standing_ms"] = time_standing(amap, 1000, standing_views, frames[2][0], max(20, repeats // 2))
     result["target"] = {"particles": 1000, "median_ms_max": 2.0,
                         "met": bool(result["update_ms"].get("1000", {}).get("median", np.inf) <= 2.0)}
     result["machine"] = machine()
