@@ -4,8 +4,9 @@
 50 cm, a heading every 10 deg), where few hypotheses lie near the estimate. The product's map
 (``eval active``'s defaults: the survey every 75 cm / 15 deg, virtual headings every 3 deg,
 virtual translations every 25 cm, 20 intensity + 5 disparity features) holds many more, and
-the match's cost grows with them. This builds that map for a world (the simulated service's
-cache), renders the views of a standing robot at a free pose of the mapped area at the pans of
+the match's cost grows with them. This builds that map for a world
+(:func:`services.evaluation.active.build_map`, the simulated service's cache), renders the
+views of a standing robot at a free pose of the mapped area at the pans of
 :data:`services.evaluation.update_cost.STANDING_PANS`, and times the update at 1000 particles
 with the match on and off, interleaved (:func:`services.evaluation.update_cost.time_standing`:
 median, p99 and min in ms, the updates whose match moved the belief, the views kept). Prints
@@ -42,10 +43,11 @@ def free_pose(world: object, seed: int) -> np.ndarray:
 
 def main() -> None:
     from drivers.sim.world import load_world
+    from services.evaluation.active import build_map
     from services.evaluation.active_setup import product_defaults
     from services.evaluation.machine import machine
     from services.evaluation.update_cost import STANDING_PANS, time_standing
-    from services.evaluation.views import ViewSpec, build_sim_maps, render_grey
+    from services.evaluation.views import ViewSpec, render_grey
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--world", default="office")
@@ -56,11 +58,7 @@ def main() -> None:
         p.error(f"--repeats must be at least 1 (got {a.repeats})")
     s = product_defaults(world=a.world, seed=0, workers=2)
     t0 = time.perf_counter()
-    amap = build_sim_maps(a.world, s.step, s.heading_step_deg, s.features, (s.preprocess,), lighting=s.lighting,
-                          width=s.width, height=s.height, size=s.size, seed=0, workers=2,
-                          virtual_headings=s.virtual_headings, virtual_step_deg=s.virtual_step_deg,
-                          disparity=True, disparity_features=s.disparity_features,
-                          translations=s.translations)[s.preprocess]
+    amap = build_map(s)
     map_s = time.perf_counter() - t0
     pose = free_pose(load_world(a.world), a.seed)
     cams = np.array([[pose[0], pose[1], pose[2] + pan] for pan in STANDING_PANS])

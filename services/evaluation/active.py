@@ -99,14 +99,12 @@ def place_test_positions(world: World, setup: ActiveSetup, grid: np.ndarray) -> 
                        f"(free, {setup.min_grid_distance} m or more from the grid)")
 
 
-def render_map(
-    setup: ActiveSetup, progress: ProgressFn | None
-) -> tuple[Any, np.ndarray, np.ndarray, int, tuple[Any, np.ndarray] | None]:
-    """The survey map as the simulated service builds it (:func:`services.evaluation.views.build_sim_maps`:
-    PCA, eq. 1, of the grid views and their virtual headings): its PCA, the map features (N, d),
-    the poses (N, 3) of the map entries, the columns cropped each side of a view, and with
-    ``disparity`` in ``setup.channels`` the disparity channel's (PCA, features), else None."""
-    amap = build_sim_maps(setup.world, setup.step, setup.heading_step_deg, setup.features, (setup.preprocess,),
+def build_map(setup: ActiveSetup, progress: ProgressFn | None = None) -> Any:
+    """The survey map (an :class:`lino_loc.appearance_map.AppearanceMap`) as the simulated
+    service builds it (:func:`services.evaluation.views.build_sim_maps`: PCA, eq. 1, of the
+    grid views and their virtual headings and translations; the disparity channel with
+    ``disparity`` in ``setup.channels``)."""
+    return build_sim_maps(setup.world, setup.step, setup.heading_step_deg, setup.features, (setup.preprocess,),
                           lighting=setup.lighting, width=setup.width, height=setup.height, size=setup.size,
                           seed=setup.seed, workers=setup.workers,
                           progress=(lambda d, n: progress("map", d, n)) if progress else None,
@@ -116,6 +114,15 @@ def render_map(
                           translations=setup.translations,
                           memory_budget_mb=setup.map_memory_budget_mb,
                           )[setup.preprocess]
+
+
+def render_map(
+    setup: ActiveSetup, progress: ProgressFn | None
+) -> tuple[Any, np.ndarray, np.ndarray, int, tuple[Any, np.ndarray] | None]:
+    """The survey map (:func:`build_map`): its PCA, the map features (N, d), the poses (N, 3)
+    of the map entries, the columns cropped each side of a view, and with ``disparity`` in
+    ``setup.channels`` the disparity channel's (PCA, features), else None."""
+    amap = build_map(setup, progress)
     ch = amap.channels["intensity"]
     dch = amap.channels.get("disparity")
     disp = None if dch is None else (dch.pca, np.asarray(dch.features, dtype=np.float64))
