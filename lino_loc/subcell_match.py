@@ -25,7 +25,8 @@ interpolate from it.
 For each heading the cost is a quadratic form in the interpolation weights ``w`` (S, 9):
 ``w G w^T - 2 w b + |v|^2`` with ``G = Y Y^T`` and ``b = Y v`` over the 9 lattice views ``Y``
 (9, k d) at that heading and the views ``v``, so the search costs (9 x 9) products, not one
-fit per pose.
+fit per pose; the bilinear weights are products of tents along x and y, so the form over the
+whole position grid separates into products along each axis.
 """
 
 from __future__ import annotations
@@ -54,19 +55,24 @@ def _tent(s: FloatArray, nodes: FloatArray) -> FloatArray:
     return np.maximum(0.0, 1.0 - np.abs(s[:, None] - nodes[None, :]))
 
 
+#: The offsets tried along one axis, in spacings.
+AXIS_OFFSETS = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1)
+#: Their tent weights on the lattice points -1, 0, 1 of that axis (21, 3).
+AXIS_WEIGHTS = _tent(AXIS_OFFSETS, np.array([-1.0, 0.0, 1.0]))
+#: ``t_a t_a'`` of every offset tried along one axis (21, 9): the quadratic form's weights.
+AXIS_PAIRS = (AXIS_WEIGHTS[:, :, None] * AXIS_WEIGHTS[:, None, :]).reshape(AXIS_OFFSETS.size, -1)
+
+
 def _grid() -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Position offsets (S, 2) in spacings and their bilinear weights (S, 9); robot heading
-    offsets (T,) in heading steps."""
-    s = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1)
-    sx, sy = (a.ravel() for a in np.meshgrid(s, s, indexing="ij"))
+    """Position offsets (S, 2) in spacings (x major) and their bilinear weights (S, 9); robot
+    heading offsets (T,) in heading steps."""
+    sx, sy = (a.ravel() for a in np.meshgrid(AXIS_OFFSETS, AXIS_OFFSETS, indexing="ij"))
     w_pos = _tent(sx, NEIGHBOURS[:, 0]) * _tent(sy, NEIGHBOURS[:, 1])
     t = np.linspace(-0.5, 0.5, 2 * HEADING_STEPS + 1)
     return np.stack([sx, sy], axis=1), w_pos, t
 
 
 POSITION_OFFSETS, POSITION_WEIGHTS, HEADING_OFFSETS = _grid()
-#: ``w_j w_k`` of every position tried (S, 81): ``w G w^T`` of all of them is one product with G.
-WEIGHT_PAIRS = (POSITION_WEIGHTS[:, :, None] * POSITION_WEIGHTS[:, None, :]).reshape(POSITION_WEIGHTS.shape[0], -1)
 #: Which lattice points each position tried interpolates from (S, 9), as 0 / 1.
 SUPPORT = (POSITION_WEIGHTS > 0.0).astype(np.float64)
 
@@ -83,12 +89,28 @@ def _heading_views(lattice: ViewLattice, g: NDArray[np.int64], o: NDArray[np.int
     r = np.floor(u).astype(np.int64)
     nodes = np.array([-1.0, 0.0, 1.0, 2.0])
     cols = (o[:, None, None] + r[None, None, :] + nodes.astype(np.int64)[None, :, None]) % lattice.n_headings
-    y = lattice.table[g[:, None, :, None], cols[:, :, None, :]]  # (C, 4, 9, k, d)
+    at = (g[:, None, :, None], cols[:, :, None, :])  # (C, 4, 9, k): the stored views around each
+    nan = np.isnan(lattice.norms[at])  # a missing view's norm is NaN
+    y = np.where(nan[..., None], 0.0, lattice.table[at])  # (C, 4, 9, k, d)
     w = _tent((HEADING_OFFSETS[:, None] + (u - r)[None, :]).ravel(), nodes).reshape(-1, u.size, 4)  # (T, k, 4)
-    nan = np.isnan(y).any(axis=4)  # (C, 4, 9, k)
     missing = np.einsum("tkc,Ccpk->Ctp", (w > 0.0).astype(np.float64), nan.astype(np.float64)) > 0.0
-    yt = np.einsum("tkc,Ccpkd->Ctpkd", w, np.where(nan[..., None], 0.0, y))
-    return yt.reshape(*yt.shape[:3], -1), missing
+    n_c, _, n_p, k, d = y.shape
+    # interpolate in heading: for each view, (T, 4) weights x (4, C 9 d) views, one batched product
+    yt = np.matmul(w.transpose(1, 0, 2), y.transpose(3, 1, 0, 2, 4).reshape(k, 4, -1))  # (k, T, C 9 d)
+    yt = yt.reshape(k, -1, n_c, n_p, d).transpose(2, 1, 3, 0, 4)  # (C, T, 9, k, d)
+    return yt.reshape(*yt.shape[:3], k * d), missing
+
+
+def _position_costs(gram: FloatArray, b: FloatArray) -> FloatArray:
+    """``w G w^T - 2 w b`` (..., S) at every position tried, of the Gram matrices ``G``
+    (..., 9, 9) and ``b`` (..., 9) over the 3 x 3 lattice points (x major). The bilinear
+    weight ``w_(a, b)`` is ``t_a(x) t_b(y)``, so the form separates: G contracted with the
+    x tents' pairs, then with the y tents' pairs (and b likewise), each a small product."""
+    lead = gram.shape[:-2]
+    g = gram.reshape(*lead, 3, 3, 3, 3).swapaxes(-3, -2).reshape(*lead, 9, 9)  # [(a, a'), (b, b')]
+    quad = AXIS_PAIRS @ g @ AXIS_PAIRS.T  # (..., 21 x, 21 y)
+    lin = AXIS_WEIGHTS @ b.reshape(*lead, 3, 3) @ AXIS_WEIGHTS.T
+    return (quad - 2.0 * lin).reshape(*lead, -1)
 
 
 def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, poses: FloatArray,
@@ -105,8 +127,7 @@ def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, poses: Floa
     yt, missing = _heading_views(lattice, g, o, pans)  # (C, T, 9, k d), (C, T, 9)
     missing |= (dist > 0.25 * spacing)[:, None, :]
     v = np.asarray(views, dtype=np.float64).reshape(-1)
-    gram, b = yt @ yt.swapaxes(-1, -2), yt @ v  # (C, T, 9, 9), (C, T, 9)
-    cost = gram.reshape(*gram.shape[:2], -1) @ WEIGHT_PAIRS.T - 2.0 * (b @ POSITION_WEIGHTS.T)  # (C, T, S)
+    cost = _position_costs(yt @ yt.swapaxes(-1, -2), yt @ v)  # (C, T, S)
     cost[missing.astype(np.float64) @ SUPPORT.T > 0.0] = np.inf
     c, ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
     if not np.isfinite(cost[c, ti, i]):

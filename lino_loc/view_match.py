@@ -121,13 +121,20 @@ class ViewLattice:
         change = change[np.isfinite(change)]
         return float(np.median(change)) if change.size else 1.0
 
-    def hypotheses(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Position and heading indices (C,) of the lattice points near ``estimate`` (x, y, theta)."""
+    def near(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hypotheses' axes: the map positions (P,) within ``radius`` of ``estimate``
+        (x, y, theta), in ascending order, and the heading indices (O,) within
+        ``heading_span`` of its heading; the hypotheses are every pair of them."""
         c = self.config
         g = np.flatnonzero(np.hypot(self.xy[:, 0] - estimate[0], self.xy[:, 1] - estimate[1]) <= c.radius)
         heads = np.arange(self.n_headings)
         o = heads[np.abs(wrap_angle(heads * self.heading_step - estimate[2])) <= c.heading_span + 1e-9]
-        gg, oo = np.meshgrid(g, o, indexing="ij")
+        return g, o
+
+    def hypotheses(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position and heading indices (P O,) of the lattice points near ``estimate`` (x, y,
+        theta): :meth:`near`'s pairs, position major."""
+        gg, oo = np.meshgrid(*self.near(estimate), indexing="ij")
         return gg.ravel(), oo.ravel()
 
     def _shift(self, pans: np.ndarray) -> np.ndarray:
@@ -139,18 +146,18 @@ class ViewLattice:
         return self.table[g[None, :], cols]
 
     def costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
-        """``c(h)`` (C,) of the views (k, d) taken at ``pans`` (k,); inf where a stored view is missing.
+        """``c(h)`` (P, O) of the views (k, d) taken at ``pans`` (k,), for every hypothesis of
+        positions ``g`` (P,) x headings ``o`` (O,) (:meth:`near`); inf where a stored view is missing.
 
         Expanded as ``sum_i |y_i|^2 + |y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)``: the dot
-        products of the views with every stored view of the hypotheses' positions are one
-        matrix product, so only scalars are gathered per hypothesis and view."""
+        products of the views with every stored view of the positions are one matrix
+        product, so only scalars are gathered per hypothesis and view."""
         v = np.atleast_2d(np.asarray(views, dtype=np.float64))
-        pos, at = np.unique(np.asarray(g, dtype=np.int64), return_inverse=True)
-        at = at.reshape(-1)
-        dots = self.table[pos] @ v.T  # (positions, H, k)
-        cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, C)
-        views_at = np.arange(v.shape[0])[:, None]
-        c = np.sum(self.norms[pos][at[None, :], cols] - 2.0 * dots[at[None, :], cols, views_at], axis=0)
+        g = np.asarray(g, dtype=np.int64)
+        k = v.shape[0]
+        terms = self.norms[g][:, :, None] - 2.0 * (self.table[g] @ v.T)  # (P, H, k)
+        cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, O)
+        c = np.sum(np.take(terms.reshape(g.size, self.n_headings * k), cols * k + np.arange(k)[:, None], axis=1), axis=1)
         c = np.maximum(c + float(np.sum(v * v)), 0.0)
         return np.where(np.isnan(c), np.inf, c)
 
@@ -158,11 +165,11 @@ class ViewLattice:
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
         """The kept hypotheses (g, o), their log posterior (normalized) and s^2; None when no
         hypothesis has every view."""
-        g, o = self.hypotheses(estimate)
-        if g.size == 0:
+        pos, heads = self.near(estimate)
+        if pos.size == 0 or heads.size == 0:
             return None
-        v = np.atleast_2d(np.asarray(views, dtype=np.float64))
-        c = self.costs(g, o, np.atleast_1d(pans), v)
+        c = self.costs(pos, heads, np.atleast_1d(pans), views).ravel()
+        g, o = (a.ravel() for a in np.meshgrid(pos, heads, indexing="ij"))
         if not np.isfinite(c).any():
             return None
         c_min = float(np.min(c))
@@ -177,13 +184,16 @@ class ViewLattice:
         """The poses (x, y, theta) of the ``k`` map positions near ``estimate`` whose stored views
         match ``views`` best, each at its best heading, best first (fewer when fewer have every
         view)."""
-        g, o = self.hypotheses(estimate)
-        c = self.costs(g, o, np.atleast_1d(pans), np.atleast_2d(np.asarray(views, dtype=np.float64)))
-        order = np.argsort(c, kind="stable")
-        order = order[np.isfinite(c[order])]
-        _, first = np.unique(g[order], return_index=True)  # each position's best hypothesis
-        best = order[np.sort(first)][:k]
-        return [np.array([self.xy[g[i], 0], self.xy[g[i], 1], wrap_angle(o[i] * self.heading_step)]) for i in best]
+        g, o = self.near(estimate)
+        c = self.costs(g, o, np.atleast_1d(pans), views)  # (P, O)
+        if c.size == 0:
+            return []
+        head = np.argmin(c, axis=1)  # each position's best heading (ties: the first)
+        best = c[np.arange(g.size), head]
+        order = np.argsort(best, kind="stable")  # ties: the earlier position
+        order = order[np.isfinite(best[order])][:k]
+        return [np.array([self.xy[g[i], 0], self.xy[g[i], 1], wrap_angle(o[head[i]] * self.heading_step)])
+                for i in order]
 
     def match(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray | None:
         """The decision: the pose (x, y, theta) of the best-matching hypothesis, None when there is none."""

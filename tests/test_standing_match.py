@@ -384,6 +384,49 @@ def test_the_fit_over_several_candidates_is_the_best_of_their_own_fits() -> None
     assert len({round(c, 9) for _, c in one}) == 3  # the candidates' own fits differ
 
 
+def _interpolated_cost(lattice: Any, pose: np.ndarray, pans: np.ndarray, views: np.ndarray) -> float:
+    """``sum_i |y_i - y(p, o + u_i)|^2`` with ``y`` interpolated directly from the lattice's
+    table: bilinear over the lattice positions at unit tents in x and y, linear between the
+    two stored headings around each camera heading (inf where a weighted view is missing)."""
+    sp = 0.25
+    total = 0.0
+    for pan, y_i in zip(pans, views, strict=True):
+        f = (pose[2] + pan) / lattice.heading_step
+        h0 = math.floor(f)
+        pred = np.zeros(y_i.shape)
+        for g, (gx, gy) in enumerate(lattice.xy):
+            w_pos = max(0.0, 1 - abs(pose[0] - gx) / sp) * max(0.0, 1 - abs(pose[1] - gy) / sp)
+            for h, w_h in ((h0, 1.0 - (f - h0)), (h0 + 1, f - h0)):
+                if w_pos * w_h > 0.0:
+                    stored = lattice.table[g, h % lattice.n_headings]
+                    if np.isnan(stored).any():
+                        return math.inf
+                    pred += w_pos * w_h * stored
+        total += float(np.sum((y_i - pred) ** 2))
+    return total
+
+
+def test_the_fit_is_the_least_directly_interpolated_cost_on_the_search_grid() -> None:
+    """``subcell_fit``'s pose and cost against a direct computation: its cost is the directly
+    interpolated cost at its pose, and no pose of the search grid around the candidate costs
+    less (the separable quadratic form and the batched heading interpolation change nothing)."""
+    entries, feats = _linear_lattice()
+    rng = np.random.default_rng(4)
+    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]) + 0.1 * rng.normal(
+        size=(entries.shape[0], 4)))
+    assert isinstance(match, StandingMatch)
+    step = 2.0 * math.pi / HEADINGS
+    pans = np.array([0.0, 1.3 * step, -2.6 * step])
+    views = feats(np.array([[0.55, 0.42]] * 3), 0.2 + pans) + 0.05 * rng.normal(size=(3, 4))
+    start = np.array([0.5, 0.5, 0.0])
+    pose, cost = subcell_fit(match.lattice, match._tree, match.spacing, start, pans, views)
+    assert cost == pytest.approx(_interpolated_cost(match.lattice, pose, pans, views), rel=1e-9)
+    offsets = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1) * 0.25
+    grid = [_interpolated_cost(match.lattice, np.array([0.5 + dx, 0.5 + dy, t * step]), pans, views)
+            for dx in offsets for dy in offsets for t in np.linspace(-0.5, 0.5, 5)]
+    assert cost == pytest.approx(min(grid), rel=1e-9)
+
+
 def test_subcell_does_not_interpolate_from_a_missing_lattice_point() -> None:
     """A lattice point missing next to the match (a wall): the positions that would take its
     views are not tried, so the truth beyond the half cell next to it is not reached and the

@@ -91,10 +91,45 @@ def test_the_costs_are_the_summed_squared_distances_to_the_stored_views() -> Non
     f = rng.normal(size=(6, HEADINGS, 5))
     f[2, 3] = np.nan  # one view the survey lacks
     lat = _lattice(f, xy, ViewMatchConfig(radius=1.0, heading_span=math.pi))
-    g, o = lat.hypotheses(np.array([0.25, 0.1, 0.0]))
+    est = np.array([0.25, 0.1, 0.0])
+    g, o = lat.hypotheses(est)
     pans = np.array([0.0, math.pi / 2, -3 * math.pi / 4, math.pi])
     views = rng.normal(size=(4, 5))
     direct = np.sum((lat.predicted(g, o, pans) - views[:, None, :]) ** 2, axis=(0, 2))
-    c = lat.costs(g, o, pans, views)
+    pos, heads = lat.near(est)
+    c = lat.costs(pos, heads, pans, views)
+    assert c.shape == (pos.size, heads.size) and pos.size * heads.size == g.size
+    c = c.ravel()  # the hypotheses' order: position major
     assert np.array_equal(np.isnan(direct), np.isinf(c)) and np.isinf(c).sum() == 4  # 4 hypotheses see it
     assert np.allclose(c[np.isfinite(c)], direct[np.isfinite(direct)], rtol=1e-12, atol=1e-12)
+
+
+def test_best_poses_rank_each_position_by_its_best_heading_ties_to_the_first() -> None:
+    """``best_poses`` against a direct ranking: each position's best heading (ties: the first
+    heading), positions by that cost (ties: the earlier position), those missing every heading
+    left out."""
+    rng = np.random.default_rng(5)
+    xy = np.array([[x, y] for x in (0.0, 0.25, 0.5) for y in (0.0, 0.25)])
+    f = rng.normal(size=(6, HEADINGS, 3))
+    f[1] = f[4]  # two positions alike: a tie between positions
+    f[2, :, :] = f[2, 0]  # one position the same at every heading: ties between headings
+    f[5] = np.nan  # one position without views
+    lat = _lattice(f, xy, ViewMatchConfig(radius=1.0, heading_span=math.pi))
+    est = np.array([0.25, 0.1, 0.0])
+    pans = np.array([0.0, math.pi / 4])
+    views = f[2, :2] + 0.3
+    g, o = lat.hypotheses(est)
+    direct = np.sum((lat.predicted(g, o, pans) - views[:, None, :]) ** 2, axis=(0, 2))
+    expected = []
+    for pos in sorted(set(g.tolist()), key=lambda p: (np.nanmin(np.where(g == p, direct, np.nan))
+                                                       if np.isfinite(direct[g == p]).any() else np.inf, p)):
+        at = np.flatnonzero((g == pos) & np.isfinite(direct))
+        if at.size:
+            best = at[np.argmin(direct[at])]
+            expected.append([lat.xy[pos, 0], lat.xy[pos, 1], o[best] * lat.heading_step])
+    got = lat.best_poses(est, pans, views, 10)
+    assert len(got) == 5 and len(expected) == 5
+    assert np.allclose(np.array(got)[:, :2], np.array(expected)[:, :2])
+    assert np.allclose(np.cos(np.array(got)[:, 2] - np.array(expected)[:, 2]), 1.0)
+    assert np.allclose(lat.best_poses(est, pans, views, 2), got[:2])
+    assert lat.best_poses(np.array([9.0, 9.0, 0.0]), pans, views, 3) == []
