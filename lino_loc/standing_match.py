@@ -104,6 +104,10 @@ class StandingMatchConfig(BaseModel):
         True, description="once the belief is gathered and a view is kept, active vision looks at the pan "
         "farthest from the views kept (lino_loc.view_spread) instead of the filter's H(u)"
     )
+    weigh_features: bool = Field(
+        True, description="weigh each feature by the inverse of its own change over one lattice step "
+        "(lino_loc.view_match.feature_weights); off: every feature alike"
+    )
     min_headings: int = Field(
         8, ge=2, description="a map whose positions hold fewer headings than this on average is no "
         "lattice of positions x headings (e.g. a survey's poses taken on the way): no match"
@@ -140,7 +144,8 @@ class StandingMatch:
         """The match on a map's intensity features (N, d) at its camera poses (N, 3), or why
         the map cannot serve it (one line): not a lattice of positions x headings."""
         cfg = config or StandingMatchConfig()
-        lattice = ViewLattice(poses, features, ViewMatchConfig(radius=cfg.radius, heading_span=math.pi))
+        lattice = ViewLattice(poses, features, ViewMatchConfig(radius=cfg.radius, heading_span=math.pi,
+                                                               weigh_features=cfg.weigh_features))
         per_position = float(np.mean(np.sum(np.isfinite(lattice.table[:, :, 0]), axis=1)))
         if per_position < cfg.min_headings:
             return (f"the map is no lattice of positions x headings ({lattice.xy.shape[0]} positions, "

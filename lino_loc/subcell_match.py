@@ -117,7 +117,8 @@ def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, poses: Floa
                 pans: FloatArray, views: FloatArray) -> tuple[FloatArray, float]:
     """The pose (x, y, theta) near one of the lattice poses ``poses`` (C, 3) whose interpolated
     stored views match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module
-    docstring), and its cost ``sum_i |y_i - y(p, o + u_i)|^2``; ``tree`` holds the lattice
+    docstring), and its cost ``sum_i |y_i - y(p, o + u_i)|^2`` in the lattice's weighted features
+    (:meth:`ViewLattice.weigh`); ``tree`` holds the lattice
     positions, ``spacing`` their spacing (m). All candidates are searched together and the
     best fit wins (ties: the earlier candidate). The first candidate itself and an infinite
     cost when every pose around every candidate interpolates from a missing point."""
@@ -126,7 +127,7 @@ def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, poses: Floa
     o = np.round(poses[:, 2] / lattice.heading_step).astype(np.int64)
     yt, missing = _heading_views(lattice, g, o, pans)  # (C, T, 9, k d), (C, T, 9)
     missing |= (dist > 0.25 * spacing)[:, None, :]
-    v = np.asarray(views, dtype=np.float64).reshape(-1)
+    v = lattice.weigh(np.asarray(views, dtype=np.float64)).reshape(-1)
     cost = _position_costs(yt @ yt.swapaxes(-1, -2), yt @ v)  # (C, T, S)
     cost[missing.astype(np.float64) @ SUPPORT.T > 0.0] = np.inf
     c, ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)

@@ -12,7 +12,9 @@ the map's stored features at position g and camera heading t, and views y_i take
 u_i:
 
 * cost ``c(h) = sum_i |y_i - y(g, o + u_i)|^2`` and the decision ``argmin_h c(h)`` (the map
-  oracle's rule, here in the filter's neighbourhood);
+  oracle's rule, here in the filter's neighbourhood), each feature weighed by the inverse of its
+  own typical change between neighbouring lattice positions (:func:`feature_weights`, with
+  :attr:`ViewMatchConfig.weigh_features`; the table and the views alike);
 * a Gaussian posterior over the hypotheses, ``p(h) ∝ exp(-(c(h) - c_min) / (2 s^2))``; one
   view's squared distance to the map's view one lattice step away is the scale,
   ``s^2 = noise * d * m`` with m the median per-feature change between neighbouring lattice
@@ -72,6 +74,38 @@ def views_by_position(entries: np.ndarray, map_features: np.ndarray,
     return xy, table, step
 
 
+def feature_weights(xy: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Each feature's weight (d,): the inverse of its typical change over one lattice step,
+    ``1 / sqrt(P_f + H_f)``, scaled so that the mean squared weight is 1. ``P_f`` is the mean
+    of ``(y_f(g', t) - y_f(g, t))^2`` over neighbouring lattice positions g, g' (one spacing
+    apart: the median distance of a position to its nearest other) at every heading t both
+    have, ``H_f`` the same over neighbouring headings at each position.
+
+    With these weights the squared distance between views is a Gaussian log-likelihood with a
+    diagonal covariance proportional to each feature's own change over one lattice step, in
+    place of one variance for all features: a feature that varies fast from place to place
+    counts no more than one that varies slowly. A feature that never changes gets weight 0; a
+    map without any change weights every feature 1."""
+    d = table.shape[2]
+    rows = []
+    if xy.shape[0] > 1:
+        tree = cKDTree(xy)
+        spacing = float(np.median(tree.query(xy, k=2)[0][:, 1]))
+        pairs = tree.query_pairs(1.01 * spacing, output_type="ndarray")
+        if pairs.size:
+            rows.append(table[pairs[:, 1]] - table[pairs[:, 0]])
+    rows.append(np.roll(table, -1, axis=1) - table)
+    change = np.zeros(d)
+    for diff in rows:
+        diff = diff.reshape(-1, d)
+        diff = diff[np.all(np.isfinite(diff), axis=1)]
+        if diff.shape[0]:
+            change += np.mean(diff * diff, axis=0)
+    w = np.divide(1.0, np.sqrt(change), out=np.zeros(d), where=change > 0.0)
+    norm = math.sqrt(float(np.mean(w * w)))
+    return w / norm if norm > 0.0 else np.ones(d)
+
+
 class ViewMatchConfig(BaseModel):
     """Settings of :class:`ViewLattice`'s decision and action values."""
 
@@ -85,6 +119,10 @@ class ViewMatchConfig(BaseModel):
     noise: float = Field(
         1.0, gt=0.0, description="the views' noise variance s^2 as a fraction of the map's own change "
         "between neighbouring lattice positions, summed over the features (module docstring)"
+    )
+    weigh_features: bool = Field(
+        True, description="weigh each feature by the inverse of its own typical change between "
+        "neighbouring lattice positions (a diagonal noise model; off: every feature alike)"
     )
 
 
@@ -104,6 +142,10 @@ class ViewLattice:
         self.config = config or ViewMatchConfig()
         self.xy, self.table, self.heading_step = views_by_position(e, f)
         self.n_headings = self.table.shape[1]
+        #: the features' weights (d,): the table holds the map's features times them, and
+        #: every view is weighed alike (:meth:`weigh`) before it is compared with the table
+        self.weights = feature_weights(self.xy, self.table) if self.config.weigh_features else np.ones(f.shape[1])
+        self.table = self.table * self.weights
         #: |y(g, t)|^2 (G, H), NaN where the view is missing: the stored half of :meth:`costs`
         self.norms = np.einsum("ghd,ghd->gh", self.table, self.table)
         self.neighbour_change = self._neighbour_change()
@@ -120,6 +162,10 @@ class ViewLattice:
         change = np.mean(diff * diff, axis=2)  # NaN where either position lacks that heading
         change = change[np.isfinite(change)]
         return float(np.median(change)) if change.size else 1.0
+
+    def weigh(self, views: np.ndarray) -> np.ndarray:
+        """Views (k, d) or one view (d,) in the table's weighted features."""
+        return np.asarray(views, dtype=np.float64) * self.weights
 
     def near(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The hypotheses' axes: the map positions (P,) within ``radius`` of ``estimate``
@@ -152,7 +198,7 @@ class ViewLattice:
         Expanded as ``sum_i |y_i|^2 + |y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)``: the dot
         products of the views with every stored view of the positions are one matrix
         product, so only scalars are gathered per hypothesis and view."""
-        v = np.atleast_2d(np.asarray(views, dtype=np.float64))
+        v = self.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))
         g = np.asarray(g, dtype=np.int64)
         k = v.shape[0]
         terms = self.norms[g][:, :, None] - 2.0 * (self.table[g] @ v.T)  # (P, H, k)

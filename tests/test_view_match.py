@@ -27,7 +27,9 @@ def test_the_table_holds_every_entry_at_its_position_and_heading() -> None:
     lat = _lattice(f, xy)
     assert lat.n_headings == HEADINGS and math.isclose(lat.heading_step, math.pi / 4)
     order = np.lexsort((xy[:, 1], xy[:, 0]))  # np.unique's order of the positions
-    assert np.array_equal(lat.table, f[order])
+    assert np.allclose(lat.table, f[order] * lat.weights, rtol=1e-15, atol=0.0)
+    plain = _lattice(f, xy, ViewMatchConfig(weigh_features=False))
+    assert np.array_equal(plain.table, f[order]) and np.array_equal(plain.weights, np.ones(4))
     with pytest.raises(ValueError, match="entries"):
         ViewLattice(np.zeros((3, 2)), np.zeros((3, 4)))
 
@@ -78,7 +80,7 @@ def test_the_noise_scale_is_the_change_between_neighbouring_positions() -> None:
     xy = np.array([[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]])
     f = np.zeros((3, HEADINGS, 2))
     f[:, :, 0] = np.array([0.0, 1.0, 2.0])[:, None]  # one unit per step in feature 0
-    lat = _lattice(f, xy, ViewMatchConfig(noise=2.0))
+    lat = _lattice(f, xy, ViewMatchConfig(noise=2.0, weigh_features=False))
     assert math.isclose(lat.neighbour_change, 0.5)  # (1^2 + 0^2) / 2
     assert math.isclose(lat.s2, 2.0 * 2 * 0.5)
 
@@ -95,7 +97,7 @@ def test_the_costs_are_the_summed_squared_distances_to_the_stored_views() -> Non
     g, o = lat.hypotheses(est)
     pans = np.array([0.0, math.pi / 2, -3 * math.pi / 4, math.pi])
     views = rng.normal(size=(4, 5))
-    direct = np.sum((lat.predicted(g, o, pans) - views[:, None, :]) ** 2, axis=(0, 2))
+    direct = np.sum((lat.predicted(g, o, pans) - lat.weigh(views)[:, None, :]) ** 2, axis=(0, 2))
     pos, heads = lat.near(est)
     c = lat.costs(pos, heads, pans, views)
     assert c.shape == (pos.size, heads.size) and pos.size * heads.size == g.size
@@ -133,3 +135,25 @@ def test_best_poses_rank_each_position_by_its_best_heading_ties_to_the_first() -
     assert np.allclose(np.cos(np.array(got)[:, 2] - np.array(expected)[:, 2]), 1.0)
     assert np.allclose(lat.best_poses(est, pans, views, 2), got[:2])
     assert lat.best_poses(np.array([9.0, 9.0, 0.0]), pans, views, 3) == []
+
+
+def test_feature_weights_are_the_inverse_change_over_one_lattice_step() -> None:
+    """Closed form on a 3 x 2 lattice of 8 headings: feature 0 changes by 1 per step in x only,
+    feature 1 by 3 per step in y only, feature 2 by 2 per heading step only, feature 3 never.
+    Its mean squared change over the 7 neighbouring position pairs (4 along x, 3 along y) plus
+    that over the neighbouring headings gives its weight ``1 / sqrt(change)``, scaled to a mean
+    squared weight of 1; the unchanging feature gets 0, and views are weighed alike."""
+    xy = np.array([[x, y] for x in (0.0, 0.25, 0.5) for y in (0.0, 0.25)])
+    f = np.zeros((6, HEADINGS, 4))
+    f[:, :, 0] = (xy[:, 0] / 0.25)[:, None]
+    f[:, :, 1] = (3.0 * xy[:, 1] / 0.25)[:, None]
+    f[:, :, 2] = 2.0 * np.abs(np.arange(HEADINGS) - HEADINGS / 2)[None, :]  # cyclic: one step each way
+    lat = _lattice(f, xy)
+    change = np.array([4 / 7 * 1.0, 3 / 7 * 9.0, 4.0, 0.0])
+    w = np.array([1 / math.sqrt(change[0]), 1 / math.sqrt(change[1]), 1 / math.sqrt(change[2]), 0.0])
+    w /= math.sqrt(np.mean(w * w))
+    assert np.allclose(lat.weights, w, rtol=1e-12)
+    assert math.isclose(float(np.mean(lat.weights ** 2)), 1.0, rel_tol=1e-12)
+    assert np.allclose(lat.weigh(np.ones((2, 4))), np.tile(w, (2, 1)))
+    still = _lattice(np.ones((6, HEADINGS, 4)), xy)
+    assert np.array_equal(still.weights, np.ones(4))  # nothing changes: every feature alike
