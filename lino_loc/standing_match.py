@@ -49,7 +49,6 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial import cKDTree
 
 from lino_loc.active_vision import ActionValues
 from lino_loc.lost_detection import base_stands
@@ -129,9 +128,6 @@ class StandingMatch:
     def __init__(self, lattice: ViewLattice, config: StandingMatchConfig | None = None) -> None:
         self.config = config or StandingMatchConfig()
         self.lattice = lattice
-        self._tree = cKDTree(lattice.xy)
-        #: the lattice's spacing (m): the median distance of a position to its nearest other
-        self.spacing = float(np.median(self._tree.query(lattice.xy, k=2)[0][:, 1])) if lattice.xy.shape[0] > 1 else 0.0
         self._pans: list[float] = []
         self._views: list[FloatArray] = []
         self._held = False
@@ -151,6 +147,11 @@ class StandingMatch:
             return (f"the map is no lattice of positions x headings ({lattice.xy.shape[0]} positions, "
                     f"{per_position:.1f} headings each on average; needs {cfg.min_headings})")
         return cls(lattice, cfg)
+
+    @property
+    def spacing(self) -> float:
+        """The lattice's spacing (m; 0 for one position)."""
+        return self.lattice.spacing
 
     @property
     def n_views(self) -> int:
@@ -203,7 +204,7 @@ class StandingMatch:
         if not self.config.subcell or self.spacing <= 0.0:
             return self.lattice.match(est, pans, views)
         candidates = self.lattice.best_poses(est, pans, views, self.config.candidates)
-        return subcell_fit(self.lattice, self._tree, self.spacing, np.stack(candidates), pans, views)[0] \
+        return subcell_fit(self.lattice, np.stack(candidates), pans, views)[0] \
             if candidates else None
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:

@@ -35,7 +35,6 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from lino_loc.poses import wrap_angle
 from lino_loc.view_match import ViewLattice
@@ -113,17 +112,18 @@ def _position_costs(gram: FloatArray, b: FloatArray) -> FloatArray:
     return (quad - 2.0 * lin).reshape(*lead, -1)
 
 
-def subcell_fit(lattice: ViewLattice, tree: cKDTree, spacing: float, poses: FloatArray,
-                pans: FloatArray, views: FloatArray) -> tuple[FloatArray, float]:
+def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray,
+                views: FloatArray) -> tuple[FloatArray, float]:
     """The pose (x, y, theta) near one of the lattice poses ``poses`` (C, 3) whose interpolated
     stored views match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module
     docstring), and its cost ``sum_i |y_i - y(p, o + u_i)|^2`` in the lattice's weighted features
-    (:meth:`ViewLattice.weigh`); ``tree`` holds the lattice
-    positions, ``spacing`` their spacing (m). All candidates are searched together and the
+    (:meth:`ViewLattice.weigh`), on the lattice's positions and their spacing
+    (``lattice.tree``, ``lattice.spacing``). All candidates are searched together and the
     best fit wins (ties: the earlier candidate). The first candidate itself and an infinite
     cost when every pose around every candidate interpolates from a missing point."""
     poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))
-    dist, g = tree.query(poses[:, None, :2] + spacing * NEIGHBOURS[None, :, :])  # (C, 9)
+    spacing = lattice.spacing
+    dist, g = lattice.tree.query(poses[:, None, :2] + spacing * NEIGHBOURS[None, :, :])  # (C, 9)
     o = np.round(poses[:, 2] / lattice.heading_step).astype(np.int64)
     yt, missing = _heading_views(lattice, g, o, pans)  # (C, T, 9, k d), (C, T, 9)
     missing |= (dist > 0.25 * spacing)[:, None, :]

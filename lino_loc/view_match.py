@@ -13,7 +13,7 @@ u_i:
 
 * cost ``c(h) = sum_i |y_i - y(g, o + u_i)|^2`` and the decision ``argmin_h c(h)`` (the map
   oracle's rule, here in the filter's neighbourhood), each feature weighed by the inverse of its
-  own typical change between neighbouring lattice positions (:func:`feature_weights`, with
+  own typical change over one lattice step in position and heading (:func:`feature_weights`, with
   :attr:`ViewMatchConfig.weigh_features`; the table and the views alike);
 * a Gaussian posterior over the hypotheses, ``p(h) ∝ exp(-(c(h) - c_min) / (2 s^2))``; one
   view's squared distance to the map's view one lattice step away is the scale,
@@ -74,12 +74,12 @@ def views_by_position(entries: np.ndarray, map_features: np.ndarray,
     return xy, table, step
 
 
-def feature_weights(xy: np.ndarray, table: np.ndarray) -> np.ndarray:
+def feature_weights(table: np.ndarray, tree: cKDTree, spacing: float) -> np.ndarray:
     """Each feature's weight (d,): the inverse of its typical change over one lattice step,
     ``1 / sqrt(P_f + H_f)``, scaled so that the mean squared weight is 1. ``P_f`` is the mean
-    of ``(y_f(g', t) - y_f(g, t))^2`` over neighbouring lattice positions g, g' (one spacing
-    apart: the median distance of a position to its nearest other) at every heading t both
-    have, ``H_f`` the same over neighbouring headings at each position.
+    of ``(y_f(g', t) - y_f(g, t))^2`` over neighbouring lattice positions g, g' (``spacing``
+    apart; ``tree`` holds the positions of the table (G, H, d)) at every heading t both have,
+    ``H_f`` the same over neighbouring headings at each position.
 
     With these weights the squared distance between views is a Gaussian log-likelihood with a
     diagonal covariance proportional to each feature's own change over one lattice step, in
@@ -88,9 +88,7 @@ def feature_weights(xy: np.ndarray, table: np.ndarray) -> np.ndarray:
     map without any change weights every feature 1."""
     d = table.shape[2]
     rows = []
-    if xy.shape[0] > 1:
-        tree = cKDTree(xy)
-        spacing = float(np.median(tree.query(xy, k=2)[0][:, 1]))
+    if spacing > 0.0:
         pairs = tree.query_pairs(1.01 * spacing, output_type="ndarray")
         if pairs.size:
             rows.append(table[pairs[:, 1]] - table[pairs[:, 0]])
@@ -121,8 +119,8 @@ class ViewMatchConfig(BaseModel):
         "between neighbouring lattice positions, summed over the features (module docstring)"
     )
     weigh_features: bool = Field(
-        True, description="weigh each feature by the inverse of its own typical change between "
-        "neighbouring lattice positions (a diagonal noise model; off: every feature alike)"
+        True, description="weigh each feature by the inverse of its own typical change over one "
+        "lattice step in position and heading (a diagonal noise model; off: every feature alike)"
     )
 
 
@@ -142,9 +140,13 @@ class ViewLattice:
         self.config = config or ViewMatchConfig()
         self.xy, self.table, self.heading_step = views_by_position(e, f)
         self.n_headings = self.table.shape[1]
+        self.tree = cKDTree(self.xy)
+        #: the lattice's spacing (m): the median distance of a position to its nearest other (0: one position)
+        self.spacing = float(np.median(self.tree.query(self.xy, k=2)[0][:, 1])) if self.xy.shape[0] > 1 else 0.0
         #: the features' weights (d,): the table holds the map's features times them, and
         #: every view is weighed alike (:meth:`weigh`) before it is compared with the table
-        self.weights = feature_weights(self.xy, self.table) if self.config.weigh_features else np.ones(f.shape[1])
+        self.weights = (feature_weights(self.table, self.tree, self.spacing) if self.config.weigh_features
+                        else np.ones(f.shape[1]))
         self.table = self.table * self.weights
         #: |y(g, t)|^2 (G, H), NaN where the view is missing: the stored half of :meth:`costs`
         self.norms = np.einsum("ghd,ghd->gh", self.table, self.table)
@@ -157,7 +159,7 @@ class ViewLattice:
         a map of one position)."""
         if self.xy.shape[0] < 2:
             return 1.0
-        _, nn = cKDTree(self.xy).query(self.xy, k=2)
+        _, nn = self.tree.query(self.xy, k=2)
         diff = self.table[nn[:, 1]] - self.table
         change = np.mean(diff * diff, axis=2)  # NaN where either position lacks that heading
         change = change[np.isfinite(change)]

@@ -378,8 +378,8 @@ def test_the_fit_over_several_candidates_is_the_best_of_their_own_fits() -> None
     pans = np.array([0.3 * step, 2.2 * step, -1.6 * step])
     views = feats(np.array([[0.6, 0.4]] * 3), 0.2 + pans)
     poses = np.array([[0.5, 0.5, step], [0.25, 0.5, 0.0], [0.75, 0.25, 2 * step]])
-    one = [subcell_fit(match.lattice, match._tree, match.spacing, p, pans, views) for p in poses]
-    pose, cost = subcell_fit(match.lattice, match._tree, match.spacing, poses, pans, views)
+    one = [subcell_fit(match.lattice, p, pans, views) for p in poses]
+    pose, cost = subcell_fit(match.lattice, poses, pans, views)
     best = int(np.argmin([c for _, c in one]))
     assert cost == pytest.approx(one[best][1], rel=1e-12) and np.allclose(pose, one[best][0])
     assert len({round(c, 9) for _, c in one}) == 3  # the candidates' own fits differ
@@ -420,7 +420,7 @@ def test_the_fit_is_the_least_directly_interpolated_cost_on_the_search_grid() ->
     pans = np.array([0.0, 1.3 * step, -2.6 * step])
     views = feats(np.array([[0.55, 0.42]] * 3), 0.2 + pans) + 0.05 * rng.normal(size=(3, 4))
     start = np.array([0.5, 0.5, 0.0])
-    pose, cost = subcell_fit(match.lattice, match._tree, match.spacing, start, pans, views)
+    pose, cost = subcell_fit(match.lattice, start, pans, views)
     assert cost == pytest.approx(_interpolated_cost(match.lattice, pose, pans, views), rel=1e-9)
     offsets = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1) * 0.25
     grid = [_interpolated_cost(match.lattice, np.array([0.5 + dx, 0.5 + dy, t * step]), pans, views)
