@@ -104,6 +104,12 @@ def feature_weights(table: np.ndarray, tree: cKDTree, spacing: float) -> np.ndar
     return w / norm if norm > 0.0 else np.ones(d)
 
 
+def _pairs(positions: np.ndarray, headings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every (position, heading) pair of the two axes, position major, as two flat arrays."""
+    gg, oo = np.meshgrid(positions, headings, indexing="ij")
+    return gg.ravel(), oo.ravel()
+
+
 class ViewMatchConfig(BaseModel):
     """Settings of :class:`ViewLattice`'s decision and action values."""
 
@@ -182,8 +188,7 @@ class ViewLattice:
     def hypotheses(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position and heading indices (P O,) of the lattice points near ``estimate`` (x, y,
         theta): :meth:`near`'s pairs, position major."""
-        gg, oo = np.meshgrid(*self.near(estimate), indexing="ij")
-        return gg.ravel(), oo.ravel()
+        return _pairs(*self.near(estimate))
 
     def _shift(self, pans: np.ndarray) -> np.ndarray:
         return np.round(np.asarray(pans, dtype=np.float64) / self.heading_step).astype(np.int64)
@@ -217,7 +222,7 @@ class ViewLattice:
         if pos.size == 0 or heads.size == 0:
             return None
         c = self.costs(pos, heads, np.atleast_1d(pans), views).ravel()
-        g, o = (a.ravel() for a in np.meshgrid(pos, heads, indexing="ij"))
+        g, o = _pairs(pos, heads)
         if not np.isfinite(c).any():
             return None
         c_min = float(np.min(c))
