@@ -20,7 +20,10 @@ match itself on the product's map (``match_ms``: median and 90th percentile of o
 Usage::
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/standing_match_oracle.py --world office [--seed 0] [--subcell off] \
-        [--candidates K]
+        [--candidates K] [--scene-changes all]
+
+With ``--scene-changes``, the test views are rendered with the world's scene changes (the
+map as surveyed), as ``eval active``'s second condition.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def main() -> None:
     from drivers.sim.world import load_world
+    from lino_loc.errors import LinoLocError
     from lino_loc.metrics import success
     from lino_loc.standing_match import StandingMatch
     from lino_loc.view_spread import spread_values
@@ -53,6 +57,9 @@ def main() -> None:
     p.add_argument("--subcell", choices=("on", "off"), default="on")
     p.add_argument("--candidates", type=int, default=None,
                    help="lattice positions the subcell search refines (default: the product's)")
+    p.add_argument("--scene-changes", default="",
+                   help="comma-separated scene changes for the test views ('all': every one the world has); "
+                        "the map stays as surveyed")
     p.add_argument("--workers", type=int, default=2)
     a = p.parse_args()
     t0 = time.perf_counter()
@@ -64,11 +71,16 @@ def main() -> None:
         update["candidates"] = a.candidates
     setup = replace(setup, standing_match=setup.standing_match.model_copy(update=update))
     world = load_world(a.world)
+    names = [n for n in a.scene_changes.split(",") if n]
+    try:
+        changes = world.check_changes(list(world.spec.scene_changes) if names == ["all"] else names)
+    except LinoLocError as e:
+        p.error(str(e))
     grid = active.grid_poses(world, setup.judged_step, math.radians(setup.heading_step_deg))
     pca, map_features, entries, margin, _ = active.render_map(setup, None)
     truths = active.place_test_positions(world, setup, grid)
     pans = setup.active.actions()
-    feats, _ = active.render_tests(setup, pca, margin, truths, pans, (), None)
+    feats, _ = active.render_tests(setup, pca, margin, truths, pans, changes, None)
     match = StandingMatch.for_map(entries, map_features, setup.standing_match)
     assert isinstance(match, StandingMatch)
     n_a = pans.size
@@ -97,6 +109,7 @@ def main() -> None:
                      "median_error_m": round(float(np.median([e for e, _ in v])), 4), "sets": len(v)}
               for name, v in out.items()}
     print(json.dumps({"benchmark": "standing_match_oracle", "world": a.world, "seed": a.seed, "subcell": a.subcell,
+                      "scene_changes": list(changes),
                       "candidates": setup.standing_match.candidates,
                       "positions": int(truths.shape[0]), "first_pans": n_a, "sets": report,
                       "match_ms": {"median": round(1e3 * float(np.median(match_s)), 3),

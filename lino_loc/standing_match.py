@@ -13,6 +13,11 @@ where the views best match the map's views interpolated between them
 as the paper's reference [8], Murase & Nayar, does), around each of the
 :attr:`StandingMatchConfig.candidates` lattice positions that match best; the best fit wins
 (the lattice point nearest the truth need not match best of them: the truth lies between).
+A view of something the map does not hold (a moved chair, a person in front of the camera)
+fits badly wherever the others fit well; with :attr:`StandingMatchConfig.robust_scale` the
+match is fitted a second time with each view weighed by how well it fitted the first time
+(the Cauchy M-estimator's weights, one step of iteratively reweighted least squares), so such
+a view pulls the pose less.
 
 :class:`StandingMatch` keeps those views (robot pan, intensity features) and, after each
 filter update, moves the particles near the estimate by the difference between the matched
@@ -107,10 +112,23 @@ class StandingMatchConfig(BaseModel):
         True, description="weigh each feature by the inverse of its own change over one lattice step "
         "(lino_loc.view_match.feature_weights); off: every feature alike"
     )
+    robust_scale: float = Field(
+        0.5, ge=0.0, description="views that fit badly count less: after a first fit, view i is "
+        "weighed by 1 / (1 + r_i / (c s^2)) (Cauchy) and the match fitted again, with r_i its squared "
+        "residual, s^2 the lattice's view noise (ViewLattice.s2) and c this scale; 0: every view alike"
+    )
     min_headings: int = Field(
         8, ge=2, description="a map whose positions hold fewer headings than this on average is no "
         "lattice of positions x headings (e.g. a survey's poses taken on the way): no match"
     )
+
+
+def cauchy_weights(residuals: ArrayLike, scale: float) -> FloatArray:
+    """The Cauchy M-estimator's weights ``1 / (1 + r_i / scale)`` of squared residuals ``r_i``
+    (iteratively reweighted least squares: Holland & Welsch, "Robust regression using
+    iteratively reweighted least-squares", 1977); 0 for an infinite residual."""
+    r = np.asarray(residuals, dtype=np.float64)
+    return np.where(np.isfinite(r), 1.0 / (1.0 + np.where(np.isfinite(r), r, 0.0) / scale), 0.0)
 
 
 def gathered(particles: FloatArray, weights: FloatArray, estimate: ArrayLike, radius: float,
@@ -196,16 +214,30 @@ class StandingMatch:
 
     def match(self, estimate: ArrayLike) -> FloatArray | None:
         """The matched robot pose (x, y, theta) near ``estimate``, None without enough views
-        or candidates."""
+        or candidates. With ``robust_scale``, fitted twice: the second time each view weighed by
+        its fit in the first (:func:`cauchy_weights`), so that a view of something the map does
+        not hold (a moved chair, a person) pulls the pose less."""
         if len(self._views) < self.config.min_views:
             return None
         pans, views = np.asarray(self._pans), np.stack(self._views)
         est = np.asarray(estimate, dtype=np.float64)
+        first = self._fit(est, pans, views, None)
+        if first is None or self.config.robust_scale <= 0.0:
+            return None if first is None else first[0]
+        weights = cauchy_weights(first[1], self.config.robust_scale * self.lattice.s2)
+        second = self._fit(est, pans, views, weights) if np.any(weights > 0.0) else None
+        return (first if second is None else second)[0]
+
+    def _fit(self, est: FloatArray, pans: FloatArray, views: FloatArray,
+             weights: FloatArray | None) -> tuple[FloatArray, FloatArray] | None:
+        """The matched pose and each view's squared residual there (subcell or lattice)."""
+        candidates = self.lattice.best_poses(est, pans, views, self.config.candidates, weights)
+        if not candidates:
+            return None
         if not self.config.subcell or self.spacing <= 0.0:
-            return self.lattice.match(est, pans, views)
-        candidates = self.lattice.best_poses(est, pans, views, self.config.candidates)
-        return subcell_fit(self.lattice, np.stack(candidates), pans, views)[0] \
-            if candidates else None
+            return candidates[0], self.lattice.residuals(candidates[0], pans, views)
+        fit = subcell_fit(self.lattice, np.stack(candidates), pans, views, weights)
+        return fit.pose, fit.residuals
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """After a filter update with the frame (``delta``, ``pan``, intensity ``features``):

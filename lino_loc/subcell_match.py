@@ -10,10 +10,12 @@ match and, for each view, the two stored headings its camera heading falls betwe
 ``y(p, t)`` that interpolation at position p and camera heading t, the views ``y_i`` taken
 at pans ``u_i`` are placed at
 
-    argmin over (p, o) of  sum_i |y_i - y(p, o + u_i)|^2
+    argmin over (p, o) of  sum_i w_i |y_i - y(p, o + u_i)|^2
 
-searched on a grid: positions within one spacing of the match every ``h / SUBCELL_STEPS``,
-robot headings within half a heading step of it every ``dtheta / (2 HEADING_STEPS)``.
+with view weights ``w_i`` (1 unless the caller weighs the views by their fit,
+:meth:`lino_loc.standing_match.StandingMatch.match`), searched on a grid: positions within
+one spacing of the match every ``h / SUBCELL_STEPS``, robot headings within half a heading
+step of it every ``dtheta / (2 HEADING_STEPS)``.
 Bilinear interpolation in (x, y) is the product of the tent functions
 ``max(0, 1 - |s - i|)`` along each axis (s in spacings, i in {-1, 0, 1}), and linear
 interpolation in heading the tent along it, at each view's own camera heading ``o + u_i``:
@@ -24,14 +26,16 @@ interpolate from it.
 
 For each heading the cost is a quadratic form in the interpolation weights ``w`` (S, 9):
 ``w G w^T - 2 w b + |v|^2`` with ``G = Y Y^T`` and ``b = Y v`` over the 9 lattice views ``Y``
-(9, k d) at that heading and the views ``v``, so the search costs (9 x 9) products, not one
-fit per pose; the bilinear weights are products of tents along x and y, so the form over the
-whole position grid separates into products along each axis.
+(9, k d) at that heading and the views ``v`` (each view's block of both scaled by
+``sqrt(w_i)``), so the search costs (9 x 9) products, not one fit per pose; the bilinear
+weights are products of tents along x and y, so the form over the whole position grid
+separates into products along each axis.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -112,13 +116,21 @@ def _position_costs(gram: FloatArray, b: FloatArray) -> FloatArray:
     return (quad - 2.0 * lin).reshape(*lead, -1)
 
 
-def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray,
-                views: FloatArray) -> tuple[FloatArray, float]:
+class SubcellFit(NamedTuple):
+    """:func:`subcell_fit`'s answer."""
+
+    pose: FloatArray  #: (x, y, theta)
+    cost: float  #: ``sum_i w_i |y_i - y(p, o + u_i)|^2`` there (inf: no pose could be interpolated)
+    residuals: FloatArray  #: ``|y_i - y(p, o + u_i)|^2`` (k,) of each view there, unweighted (inf: none)
+
+
+def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray, views: FloatArray,
+                view_weights: FloatArray | None = None) -> SubcellFit:
     """The pose (x, y, theta) near one of the lattice poses ``poses`` (C, 3) whose interpolated
     stored views match ``views`` (k, d) taken at robot pans ``pans`` (k,) best (module
-    docstring), and its cost ``sum_i |y_i - y(p, o + u_i)|^2`` in the lattice's weighted features
-    (:meth:`ViewLattice.weigh`), on the lattice's positions and their spacing
-    (``lattice.tree``, ``lattice.spacing``). All candidates are searched together and the
+    docstring), its cost ``sum_i w_i |y_i - y(p, o + u_i)|^2`` in the lattice's weighted
+    features (:meth:`ViewLattice.weigh`; ``w`` the ``view_weights`` (k,), None: all 1) and
+    each view's own squared residual there. All candidates are searched together and the
     best fit wins (ties: the earlier candidate). The first candidate itself and an infinite
     cost when every pose around every candidate interpolates from a missing point."""
     poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))
@@ -127,13 +139,19 @@ def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray,
     o = np.round(poses[:, 2] / lattice.heading_step).astype(np.int64)
     yt, missing = _heading_views(lattice, g, o, pans)  # (C, T, 9, k d), (C, T, 9)
     missing |= (dist > 0.25 * spacing)[:, None, :]
-    v = lattice.weigh(np.asarray(views, dtype=np.float64)).reshape(-1)
-    cost = _position_costs(yt @ yt.swapaxes(-1, -2), yt @ v)  # (C, T, S)
+    v = lattice.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))  # (k, d)
+    k, d = v.shape
+    root = np.ones(k) if view_weights is None else np.sqrt(np.asarray(view_weights, dtype=np.float64))
+    # each view's block scaled by sqrt(w_i): the quadratic form is then the weighted cost
+    yw = yt if view_weights is None else (yt.reshape(*yt.shape[:3], k, d) * root[:, None]).reshape(yt.shape)
+    vw = (v * root[:, None]).reshape(-1)
+    cost = _position_costs(yw @ yw.swapaxes(-1, -2), yw @ vw)  # (C, T, S)
     cost[missing.astype(np.float64) @ SUPPORT.T > 0.0] = np.inf
     c, ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
     if not np.isfinite(cost[c, ti, i]):
-        return poses[0].copy(), math.inf
+        return SubcellFit(poses[0].copy(), math.inf, np.full(k, np.inf))
     out = poses[c].copy()
     out[:2] += spacing * POSITION_OFFSETS[int(i)]
     out[2] = wrap_angle((o[c] + HEADING_OFFSETS[int(ti)]) * lattice.heading_step)
-    return out, float(cost[c, ti, i] + v @ v)
+    predicted = (POSITION_WEIGHTS[int(i)] @ yt[c, ti]).reshape(k, d)
+    return SubcellFit(out, float(cost[c, ti, i] + vw @ vw), np.sum((v - predicted) ** 2, axis=1))

@@ -11,7 +11,8 @@ on the map's heading lattice within :attr:`ViewMatchConfig.heading_span` of it. 
 the map's stored features at position g and camera heading t, and views y_i taken at pans
 u_i:
 
-* cost ``c(h) = sum_i |y_i - y(g, o + u_i)|^2`` and the decision ``argmin_h c(h)`` (the map
+* cost ``c(h) = sum_i w_i |y_i - y(g, o + u_i)|^2`` (view weights ``w_i``, 1 unless the caller
+  weighs the views by their fit) and the decision ``argmin_h c(h)`` (the map
   oracle's rule, here in the filter's neighbourhood), each feature weighed by the inverse of its
   own typical change over one lattice step in position and heading (:func:`feature_weights`, with
   :attr:`ViewMatchConfig.weigh_features`; the table and the views alike);
@@ -198,9 +199,11 @@ class ViewLattice:
         cols = (o[None, :] + self._shift(pans)[:, None]) % self.n_headings
         return self.table[g[None, :], cols]
 
-    def costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
+    def costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray,
+              view_weights: np.ndarray | None = None) -> np.ndarray:
         """``c(h)`` (P, O) of the views (k, d) taken at ``pans`` (k,), for every hypothesis of
         positions ``g`` (P,) x headings ``o`` (O,) (:meth:`near`); inf where a stored view is missing.
+        With ``view_weights`` (k,), view i's term counts ``view_weights[i]`` times (None: once).
 
         Expanded as ``sum_i |y_i|^2 + |y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)``: the dot
         products of the views with every stored view of the positions are one matrix
@@ -208,11 +211,21 @@ class ViewLattice:
         v = self.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))
         g = np.asarray(g, dtype=np.int64)
         k = v.shape[0]
+        w = np.ones(k) if view_weights is None else np.asarray(view_weights, dtype=np.float64)
         terms = self.norms[g][:, :, None] - 2.0 * (self.table[g] @ v.T)  # (P, H, k)
         cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, O)
-        c = np.sum(np.take(terms.reshape(g.size, self.n_headings * k), cols * k + np.arange(k)[:, None], axis=1), axis=1)
-        c = np.maximum(c + float(np.sum(v * v)), 0.0)
+        per_view = np.take(terms.reshape(g.size, self.n_headings * k), cols * k + np.arange(k)[:, None], axis=1)
+        c = np.maximum(np.einsum("pko,k->po", per_view, w) + float(w @ np.sum(v * v, axis=1)), 0.0)
         return np.where(np.isnan(c), np.inf, c)
+
+    def residuals(self, pose: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
+        """``|y_i - y(g, o + u_i)|^2`` (k,) of each view at the lattice point (g, o) nearest to
+        ``pose`` (x, y, theta), in the weighted features; inf where the stored view is missing."""
+        g = int(self.tree.query(np.asarray(pose, dtype=np.float64)[:2])[1])
+        o = int(np.round(pose[2] / self.heading_step)) % self.n_headings
+        y = self.predicted(np.array([g]), np.array([o]), np.atleast_1d(pans))[:, 0, :]
+        r = np.sum((self.weigh(np.atleast_2d(views)) - y) ** 2, axis=1)
+        return np.where(np.isnan(r), np.inf, r)
 
     def posterior(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
@@ -233,12 +246,13 @@ class ViewLattice:
         lp = lp[keep] - np.logaddexp.reduce(lp[keep])
         return g[keep], o[keep], lp, s2
 
-    def best_poses(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray, k: int) -> list[np.ndarray]:
+    def best_poses(self, estimate: np.ndarray, pans: np.ndarray, views: np.ndarray, k: int,
+                   view_weights: np.ndarray | None = None) -> list[np.ndarray]:
         """The poses (x, y, theta) of the ``k`` map positions near ``estimate`` whose stored views
-        match ``views`` best, each at its best heading, best first (fewer when fewer have every
-        view)."""
+        match ``views`` best (each view's term weighed by ``view_weights``, :meth:`costs`), each
+        at its best heading, best first (fewer when fewer have every view)."""
         g, o = self.near(estimate)
-        c = self.costs(g, o, np.atleast_1d(pans), views)  # (P, O)
+        c = self.costs(g, o, np.atleast_1d(pans), views, view_weights)  # (P, O)
         if c.size == 0:
             return []
         head = np.argmin(c, axis=1)  # each position's best heading (ties: the first)

@@ -15,7 +15,7 @@ from lino_loc.localizer import Localizer, LocalizerConfig
 from lino_loc.motion_model import MotionModelConfig, OdometryMotionModel
 from lino_loc.particle_filter import AuxiliaryParticleFilter, FilterConfig
 from lino_loc.sensor_model import Bounds, SensorModelConfig
-from lino_loc.standing_match import StandingMatch, StandingMatchConfig
+from lino_loc.standing_match import StandingMatch, StandingMatchConfig, cauchy_weights
 from lino_loc.subcell_match import SUBCELL_STEPS, subcell_fit
 from lino_loc.view_spread import separation
 from tests.test_localizer import Channel, TinyMap, _feature_fn
@@ -379,10 +379,10 @@ def test_the_fit_over_several_candidates_is_the_best_of_their_own_fits() -> None
     views = feats(np.array([[0.6, 0.4]] * 3), 0.2 + pans)
     poses = np.array([[0.5, 0.5, step], [0.25, 0.5, 0.0], [0.75, 0.25, 2 * step]])
     one = [subcell_fit(match.lattice, p, pans, views) for p in poses]
-    pose, cost = subcell_fit(match.lattice, poses, pans, views)
-    best = int(np.argmin([c for _, c in one]))
-    assert cost == pytest.approx(one[best][1], rel=1e-12) and np.allclose(pose, one[best][0])
-    assert len({round(c, 9) for _, c in one}) == 3  # the candidates' own fits differ
+    pose, cost, _ = subcell_fit(match.lattice, poses, pans, views)
+    best = int(np.argmin([f.cost for f in one]))
+    assert cost == pytest.approx(one[best].cost, rel=1e-12) and np.allclose(pose, one[best].pose)
+    assert len({round(f.cost, 9) for f in one}) == 3  # the candidates' own fits differ
 
 
 def _interpolated_cost(lattice: Any, pose: np.ndarray, pans: np.ndarray, views: np.ndarray) -> float:
@@ -420,12 +420,80 @@ def test_the_fit_is_the_least_directly_interpolated_cost_on_the_search_grid() ->
     pans = np.array([0.0, 1.3 * step, -2.6 * step])
     views = feats(np.array([[0.55, 0.42]] * 3), 0.2 + pans) + 0.05 * rng.normal(size=(3, 4))
     start = np.array([0.5, 0.5, 0.0])
-    pose, cost = subcell_fit(match.lattice, start, pans, views)
+    pose, cost, _ = subcell_fit(match.lattice, start, pans, views)
     assert cost == pytest.approx(_interpolated_cost(match.lattice, pose, pans, views), rel=1e-9)
     offsets = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1) * 0.25
     grid = [_interpolated_cost(match.lattice, np.array([0.5 + dx, 0.5 + dy, t * step]), pans, views)
             for dx in offsets for dy in offsets for t in np.linspace(-0.5, 0.5, 5)]
     assert cost == pytest.approx(min(grid), rel=1e-9)
+
+
+def _per_view_residuals(lattice: Any, pose: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """Each view's own :func:`_interpolated_cost` at ``pose``."""
+    return np.array([_interpolated_cost(lattice, pose, pans[i:i + 1], views[i:i + 1]) for i in range(len(pans))])
+
+
+def test_the_weighed_fit_is_the_least_weighed_cost_and_reports_each_view_s_residual() -> None:
+    """With view weights w, ``subcell_fit``'s cost is ``sum_i w_i r_i`` at its pose, with r_i
+    each view's directly interpolated squared residual (reported unweighted), and no pose of
+    the search grid has a lower weighed cost."""
+    entries, feats = _linear_lattice()
+    rng = np.random.default_rng(6)
+    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]) + 0.1 * rng.normal(
+        size=(entries.shape[0], 4)))
+    assert isinstance(match, StandingMatch)
+    step = 2.0 * math.pi / HEADINGS
+    pans = np.array([0.0, 1.3 * step, -2.6 * step])
+    views = feats(np.array([[0.55, 0.42]] * 3), 0.2 + pans) + 0.05 * rng.normal(size=(3, 4))
+    w = np.array([1.0, 0.2, 0.7])
+    start = np.array([0.5, 0.5, 0.0])
+    pose, cost, residuals = subcell_fit(match.lattice, start, pans, views, w)
+    direct = _per_view_residuals(match.lattice, pose, pans, views)
+    assert np.allclose(residuals, direct, rtol=1e-9) and cost == pytest.approx(float(w @ direct), rel=1e-9)
+    offsets = np.linspace(-1.0, 1.0, 2 * SUBCELL_STEPS + 1) * 0.25
+    grid = [float(w @ _per_view_residuals(match.lattice, np.array([0.5 + dx, 0.5 + dy, t * step]), pans, views))
+            for dx in offsets[::4] for dy in offsets[::4] for t in np.linspace(-0.5, 0.5, 5)]
+    assert cost <= min(grid) * (1 + 1e-9)
+    unweighed = subcell_fit(match.lattice, start, pans, views)
+    assert unweighed.cost == pytest.approx(float(np.sum(_per_view_residuals(match.lattice, unweighed.pose, pans,
+                                                                           views))), rel=1e-9)
+
+
+def test_cauchy_weights() -> None:
+    """``1 / (1 + r / scale)``: 1 for a perfect fit, 1/2 at the scale, 0 for an infinite residual."""
+    assert np.allclose(cauchy_weights([0.0, 2.0, 6.0, math.inf], 2.0), [1.0, 0.5, 0.25, 0.0])
+
+
+def _views_with_one_spoiled(match: StandingMatch, feats: Any, truth: np.ndarray, heading: float,
+                            spoil: float) -> None:
+    """Four views at ``truth``; the second's position features moved by ``spoil`` (something
+    the map does not hold in view)."""
+    for i, pan in enumerate((0.0, math.pi / 2, -math.pi / 3, 0.8 * math.pi)):
+        y = feats(truth[None], np.array([heading + pan]))[0]
+        match.observe(np.zeros(3), pan, y + (np.array([spoil, spoil, 0.0, 0.0]) if i == 1 else 0.0))
+
+
+@pytest.mark.parametrize("spoil", [0.0, 0.4])
+def test_a_view_that_fits_badly_pulls_the_match_less(spoil: float) -> None:
+    """One of four views spoiled: fitted alike, the views are placed 14 cm off the truth;
+    weighed by their fit (``robust_scale``), within 5 cm. Unspoiled views fit alike, so their
+    weights are equal and both matches are the same."""
+    entries, feats = _linear_lattice()
+    truth, heading = np.array([0.55, 0.45]), 0.3
+    poses = []
+    for scale in (0.0, 0.5):
+        match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]),
+                                      StandingMatchConfig(robust_scale=scale))
+        assert isinstance(match, StandingMatch)
+        _views_with_one_spoiled(match, feats, truth, heading, spoil)
+        pose = match.match(np.array([0.5, 0.5, heading]))
+        assert pose is not None
+        poses.append(pose)
+    errors = [float(np.hypot(*(p[:2] - truth))) for p in poses]
+    if spoil == 0.0:
+        assert np.allclose(poses[0], poses[1], atol=1e-9) and errors[0] < 0.02
+    else:
+        assert errors[0] > 0.1 and errors[1] < 0.05, errors
 
 
 def test_subcell_does_not_interpolate_from_a_missing_lattice_point() -> None:

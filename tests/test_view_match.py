@@ -106,6 +106,32 @@ def test_the_costs_are_the_summed_squared_distances_to_the_stored_views() -> Non
     assert np.allclose(c[np.isfinite(c)], direct[np.isfinite(direct)], rtol=1e-12, atol=1e-12)
 
 
+def test_weighed_costs_and_residuals_are_the_direct_sums() -> None:
+    """``costs`` with view weights is ``sum_i w_i |y_i - y(g, o + u_i)|^2``; ``residuals`` at a
+    pose are the terms of its nearest lattice point (inf for a missing view)."""
+    rng = np.random.default_rng(8)
+    xy = np.array([[x, y] for x in (0.0, 0.25, 0.5) for y in (0.0, 0.25)])
+    f = rng.normal(size=(6, HEADINGS, 5))
+    f[2, 3] = np.nan
+    lat = _lattice(f, xy, ViewMatchConfig(radius=1.0, heading_span=math.pi))
+    est = np.array([0.25, 0.1, 0.0])
+    pans = np.array([0.0, math.pi / 2, -3 * math.pi / 4])
+    views = rng.normal(size=(3, 5))
+    w = np.array([0.5, 2.0, 0.0])
+    g, o = lat.hypotheses(est)
+    terms = np.sum((lat.predicted(g, o, pans) - lat.weigh(views)[:, None, :]) ** 2, axis=2)  # (k, C)
+    direct = w @ np.where(np.isnan(terms), 0.0, terms)
+    direct[np.isnan(terms).any(axis=0)] = np.inf
+    c = lat.costs(*lat.near(est), pans, views, w).ravel()
+    assert np.array_equal(np.isinf(c), np.isinf(direct))
+    assert np.allclose(c[np.isfinite(c)], direct[np.isfinite(direct)], rtol=1e-12, atol=1e-12)
+    i = int(np.flatnonzero(np.isfinite(direct))[3])
+    pose = np.array([*lat.xy[g[i]] + 0.03, o[i] * lat.heading_step + 0.01])
+    assert np.allclose(lat.residuals(pose, pans, views), terms[:, i], rtol=1e-12)
+    missing = np.array([*lat.xy[2], 3 * lat.heading_step])
+    assert np.isinf(lat.residuals(missing, np.array([0.0, math.pi]), views[:2])[0])
+
+
 def test_best_poses_rank_each_position_by_its_best_heading_ties_to_the_first() -> None:
     """``best_poses`` against a direct ranking: each position's best heading (ties: the first
     heading), positions by that cost (ties: the earlier position), those missing every heading
