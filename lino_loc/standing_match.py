@@ -58,7 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from lino_loc.active_vision import ActionValues
 from lino_loc.lost_detection import base_stands
 from lino_loc.pose_estimate import Estimate
-from lino_loc.subcell_match import subcell_fit
+from lino_loc.subcell_match import SubcellSearch
 from lino_loc.view_match import ViewLattice, ViewMatchConfig
 from lino_loc.view_spread import spread_values
 
@@ -216,28 +216,36 @@ class StandingMatch:
         """The matched robot pose (x, y, theta) near ``estimate``, None without enough views
         or candidates. With ``robust_scale``, fitted twice: the second time each view weighed by
         its fit in the first (:func:`cauchy_weights`), so that a view of something the map does
-        not hold (a moved chair, a person) pulls the pose less."""
+        not hold (a moved chair, a person) pulls the pose less. The second fit reuses the
+        first's per-view costs, and its search where the candidates are the same."""
         if len(self._views) < self.config.min_views:
             return None
         pans, views = np.asarray(self._pans), np.stack(self._views)
-        est = np.asarray(estimate, dtype=np.float64)
-        first = self._fit(est, pans, views, None)
+        g, o = self.lattice.near(np.asarray(estimate, dtype=np.float64))
+        costs = self.lattice.view_costs(g, o, pans, views)
+        first = self._fit(g, o, costs, pans, views, None, None)
         if first is None or self.config.robust_scale <= 0.0:
             return None if first is None else first[0]
         weights = cauchy_weights(first[1], self.config.robust_scale * self.lattice.s2)
-        second = self._fit(est, pans, views, weights) if np.any(weights > 0.0) else None
+        second = self._fit(g, o, costs, pans, views, weights, first[2]) if np.any(weights > 0.0) else None
         return (first if second is None else second)[0]
 
-    def _fit(self, est: FloatArray, pans: FloatArray, views: FloatArray,
-             weights: FloatArray | None) -> tuple[FloatArray, FloatArray] | None:
-        """The matched pose and each view's squared residual there (subcell or lattice)."""
-        candidates = self.lattice.best_poses(est, pans, views, self.config.candidates, weights)
+    def _fit(self, g: NDArray[np.int64], o: NDArray[np.int64], costs: tuple[FloatArray, FloatArray],
+             pans: FloatArray, views: FloatArray, weights: FloatArray | None,
+             search: SubcellSearch | None) -> tuple[FloatArray, FloatArray, SubcellSearch | None] | None:
+        """The matched pose, each view's squared residual there and the subcell search (None:
+        on the lattice), from the hypotheses' per-view ``costs`` (:meth:`ViewLattice.view_costs`)
+        weighed by ``weights``; ``search`` is reused when its candidates are this fit's."""
+        candidates = self.lattice.ranked(g, o, self.lattice.weighed(*costs, weights), self.config.candidates)
         if not candidates:
             return None
         if not self.config.subcell or self.spacing <= 0.0:
-            return candidates[0], self.lattice.residuals(candidates[0], pans, views)
-        fit = subcell_fit(self.lattice, np.stack(candidates), pans, views, weights)
-        return fit.pose, fit.residuals
+            return candidates[0], self.lattice.residuals(candidates[0], pans, views), None
+        poses = np.stack(candidates)
+        if search is None or not np.array_equal(search.poses, poses):
+            search = SubcellSearch(self.lattice, poses, pans, views)
+        fit = search.fit(weights)
+        return fit.pose, fit.residuals, search
 
     def step(self, pf: ParticleFilterLike, delta: ArrayLike, pan: float, features: ArrayLike | None) -> bool:
         """After a filter update with the frame (``delta``, ``pan``, intensity ``features``):

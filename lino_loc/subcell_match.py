@@ -14,8 +14,12 @@ at pans ``u_i`` are placed at
 
 with view weights ``w_i`` (1 unless the caller weighs the views by their fit,
 :meth:`lino_loc.standing_match.StandingMatch.match`), searched on a grid: positions within
-one spacing of the match every ``h / SUBCELL_STEPS``, robot headings within half a heading
-step of it every ``dtheta / (2 HEADING_STEPS)``.
+one spacing of the match every ``h / SUBCELL_STEPS``, robot headings within half a heading step of it every ``dtheta / (2 HEADING_STEPS)``, and the
+position then refined between the grid's points: along each axis, the vertex of the parabola
+through the best point and its two neighbours (within a lattice cell the cost along one axis
+is a quadratic), where that costs less. A fit held to the grid would put the pose exactly on
+the grid's points, among them the midpoints between lattice points.
+
 Bilinear interpolation in (x, y) is the product of the tent functions
 ``max(0, 1 - |s - i|)`` along each axis (s in spacings, i in {-1, 0, 1}), and linear
 interpolation in heading the tent along it, at each view's own camera heading ``o + u_i``:
@@ -25,9 +29,10 @@ the match (a wall, the map's edge, a heading the survey lacks) excludes the pose
 interpolate from it.
 
 For each heading the cost is a quadratic form in the interpolation weights ``w`` (S, 9):
-``w G w^T - 2 w b + |v|^2`` with ``G = Y Y^T`` and ``b = Y v`` over the 9 lattice views ``Y``
-(9, k d) at that heading and the views ``v`` (each view's block of both scaled by
-``sqrt(w_i)``), so the search costs (9 x 9) products, not one fit per pose; the bilinear
+``w G w^T - 2 w b + sum_i w_i |v_i|^2`` with ``G = sum_i w_i Y_i Y_i^T`` and
+``b = sum_i w_i Y_i v_i`` over the 9 lattice views ``Y_i`` (9, d) of view i at that heading
+(:class:`SubcellSearch` keeps each view's products, so a fit with other view weights costs
+their sums only), so the search costs (9 x 9) products, not one fit per pose; the bilinear
 weights are products of tents along x and y, so the form over the whole position grid
 separates into products along each axis.
 """
@@ -124,6 +129,53 @@ class SubcellFit(NamedTuple):
     residuals: FloatArray  #: ``|y_i - y(p, o + u_i)|^2`` (k,) of each view there, unweighted (inf: none)
 
 
+class SubcellSearch:
+    """The search of :func:`subcell_fit` prepared once for a set of views around candidate
+    lattice poses ``poses`` (C, 3): each view's Gram matrices over the candidates' lattice
+    views, so that :meth:`fit` with any view weights costs only their weighted sum and the
+    search over the grid (a second fit with the views weighed by their first fit costs a
+    fraction of the first)."""
+
+    def __init__(self, lattice: ViewLattice, poses: FloatArray, pans: FloatArray, views: FloatArray) -> None:
+        self.lattice = lattice
+        self.poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))
+        dist, g = lattice.tree.query(self.poses[:, None, :2] + lattice.spacing * NEIGHBOURS[None, :, :])  # (C, 9)
+        self.headings = np.round(self.poses[:, 2] / lattice.heading_step).astype(np.int64)
+        yt, missing = _heading_views(lattice, g, self.headings, pans)  # (C, T, 9, k d), (C, T, 9)
+        self.missing = missing | (dist > 0.25 * lattice.spacing)[:, None, :]
+        self.views = lattice.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))  # (k, d)
+        k, d = self.views.shape
+        self.stored = yt.reshape(*yt.shape[:3], k, d).swapaxes(2, 3)  # (C, T, k, 9, d)
+        self._gram = self.stored @ self.stored.swapaxes(-1, -2)  # (C, T, k, 9, 9): each view's
+        self._b = (self.stored @ self.views[:, :, None])[..., 0]  # (C, T, k, 9)
+        self._excluded = self.missing.astype(np.float64) @ SUPPORT.T > 0.0  # (C, T, S)
+
+    def fit(self, view_weights: FloatArray | None = None) -> SubcellFit:
+        """The best fit with views weighed by ``view_weights`` (k,) (None: all 1)
+        (:func:`subcell_fit`)."""
+        k = self.views.shape[0]
+        w = np.ones(k) if view_weights is None else np.asarray(view_weights, dtype=np.float64)
+        cost = _position_costs(np.einsum("ctkpq,k->ctpq", self._gram, w), np.einsum("ctkp,k->ctp", self._b, w))
+        cost[self._excluded] = np.inf
+        c, ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
+        if not np.isfinite(cost[c, ti, i]):
+            return SubcellFit(self.poses[0].copy(), math.inf, np.full(k, np.inf))
+        offset, weights = _refined(cost[c, ti], int(i), self.missing[c, ti])
+        residuals = self._residuals(c, ti, weights)
+        if w @ residuals > cost[c, ti, i] + w @ np.sum(self.views * self.views, axis=1):  # the grid's point fits better
+            offset = POSITION_OFFSETS[i]
+            residuals = self._residuals(c, ti, POSITION_WEIGHTS[i])
+        out = self.poses[c].copy()
+        out[:2] += self.lattice.spacing * offset
+        out[2] = wrap_angle((self.headings[c] + HEADING_OFFSETS[int(ti)]) * self.lattice.heading_step)
+        return SubcellFit(out, float(w @ residuals), residuals)
+
+    def _residuals(self, c: int, ti: int, weights: FloatArray) -> FloatArray:
+        """Each view's squared residual (k,) against candidate c's views at heading ti
+        interpolated with the position weights ``weights`` (9,)."""
+        return np.sum((self.views - weights @ self.stored[c, ti]) ** 2, axis=1)
+
+
 def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray, views: FloatArray,
                 view_weights: FloatArray | None = None) -> SubcellFit:
     """The pose (x, y, theta) near one of the lattice poses ``poses`` (C, 3) whose interpolated
@@ -133,25 +185,33 @@ def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray, views
     each view's own squared residual there. All candidates are searched together and the
     best fit wins (ties: the earlier candidate). The first candidate itself and an infinite
     cost when every pose around every candidate interpolates from a missing point."""
-    poses = np.atleast_2d(np.asarray(poses, dtype=np.float64))
-    spacing = lattice.spacing
-    dist, g = lattice.tree.query(poses[:, None, :2] + spacing * NEIGHBOURS[None, :, :])  # (C, 9)
-    o = np.round(poses[:, 2] / lattice.heading_step).astype(np.int64)
-    yt, missing = _heading_views(lattice, g, o, pans)  # (C, T, 9, k d), (C, T, 9)
-    missing |= (dist > 0.25 * spacing)[:, None, :]
-    v = lattice.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))  # (k, d)
-    k, d = v.shape
-    root = np.ones(k) if view_weights is None else np.sqrt(np.asarray(view_weights, dtype=np.float64))
-    # each view's block scaled by sqrt(w_i): the quadratic form is then the weighted cost
-    yw = yt if view_weights is None else (yt.reshape(*yt.shape[:3], k, d) * root[:, None]).reshape(yt.shape)
-    vw = (v * root[:, None]).reshape(-1)
-    cost = _position_costs(yw @ yw.swapaxes(-1, -2), yw @ vw)  # (C, T, S)
-    cost[missing.astype(np.float64) @ SUPPORT.T > 0.0] = np.inf
-    c, ti, i = np.unravel_index(int(np.argmin(cost)), cost.shape)
-    if not np.isfinite(cost[c, ti, i]):
-        return SubcellFit(poses[0].copy(), math.inf, np.full(k, np.inf))
-    out = poses[c].copy()
-    out[:2] += spacing * POSITION_OFFSETS[int(i)]
-    out[2] = wrap_angle((o[c] + HEADING_OFFSETS[int(ti)]) * lattice.heading_step)
-    predicted = (POSITION_WEIGHTS[int(i)] @ yt[c, ti]).reshape(k, d)
-    return SubcellFit(out, float(cost[c, ti, i] + vw @ vw), np.sum((v - predicted) ** 2, axis=1))
+    return SubcellSearch(lattice, poses, pans, views).fit(view_weights)
+
+
+def _vertex(lo: float, mid: float, hi: float) -> float:
+    """The vertex (in grid steps, within half a step of 0) of the parabola through
+    (-1, ``lo``), (0, ``mid``), (1, ``hi``), ``mid`` the least; 0 without both neighbours."""
+    curvature = lo - 2.0 * mid + hi
+    if not (math.isfinite(lo) and math.isfinite(hi)) or curvature <= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (lo - hi) / curvature, -0.5, 0.5))
+
+
+def _refined(costs: FloatArray, i: int, missing: NDArray[np.bool_]) -> tuple[FloatArray, FloatArray]:
+    """The position offset (2,) in spacings and its bilinear weights (9,) refined from the
+    search grid's best point ``i`` of ``costs`` (S,) between the grid's points: along each
+    axis, the vertex of the parabola through it and its two neighbours (within a lattice cell
+    the cost along one axis is a quadratic in the offset, the interpolation being linear in
+    it), so that the fit is not held to the grid; the grid's point where the refined offset
+    would interpolate from a ``missing`` (9,) lattice point."""
+    n = AXIS_OFFSETS.size
+    grid = costs.reshape(n, n)
+    ix, iy = divmod(i, n)
+    dx = _vertex(grid[ix - 1, iy], grid[ix, iy], grid[ix + 1, iy]) if 0 < ix < n - 1 else 0.0
+    dy = _vertex(grid[ix, iy - 1], grid[ix, iy], grid[ix, iy + 1]) if 0 < iy < n - 1 else 0.0
+    step = float(AXIS_OFFSETS[1] - AXIS_OFFSETS[0])
+    offset = POSITION_OFFSETS[i] + step * np.array([dx, dy])
+    weights = (_tent(offset[:1], NEIGHBOURS[:, 0]) * _tent(offset[1:], NEIGHBOURS[:, 1]))[0]
+    if (dx == 0.0 and dy == 0.0) or np.any(missing[weights > 0.0]):
+        return POSITION_OFFSETS[i], POSITION_WEIGHTS[i]
+    return offset, weights

@@ -199,24 +199,38 @@ class ViewLattice:
         cols = (o[None, :] + self._shift(pans)[:, None]) % self.n_headings
         return self.table[g[None, :], cols]
 
+    def view_costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Each view's part of :meth:`costs` for the hypotheses ``g`` (P,) x ``o`` (O,):
+        ``|y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)`` (P, k, O), NaN where the stored view is
+        missing, and ``|y_i|^2`` (k,); :meth:`weighed` sums them with any view weights.
+
+        The dot products of the views with every stored view of the positions are one matrix
+        product, so only scalars are gathered per hypothesis and view."""
+        v = self.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))
+        g = np.asarray(g, dtype=np.int64)
+        k = v.shape[0]
+        terms = self.norms[g][:, :, None] - 2.0 * (self.table[g] @ v.T)  # (P, H, k)
+        cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, O)
+        per_view = np.take(terms.reshape(g.size, self.n_headings * k), cols * k + np.arange(k)[:, None], axis=1)
+        return per_view, np.sum(v * v, axis=1)
+
+    @staticmethod
+    def weighed(per_view: np.ndarray, norms: np.ndarray, view_weights: np.ndarray | None = None) -> np.ndarray:
+        """``c(h)`` (P, O) from :meth:`view_costs`, view i's term counted ``view_weights[i]``
+        times (None: once); inf where a stored view is missing."""
+        w = np.ones(norms.size) if view_weights is None else np.asarray(view_weights, dtype=np.float64)
+        c = np.maximum(np.einsum("pko,k->po", per_view, w) + float(w @ norms), 0.0)
+        return np.where(np.isnan(c), np.inf, c)
+
     def costs(self, g: np.ndarray, o: np.ndarray, pans: np.ndarray, views: np.ndarray,
               view_weights: np.ndarray | None = None) -> np.ndarray:
         """``c(h)`` (P, O) of the views (k, d) taken at ``pans`` (k,), for every hypothesis of
         positions ``g`` (P,) x headings ``o`` (O,) (:meth:`near`); inf where a stored view is missing.
         With ``view_weights`` (k,), view i's term counts ``view_weights[i]`` times (None: once).
-
-        Expanded as ``sum_i |y_i|^2 + |y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)``: the dot
-        products of the views with every stored view of the positions are one matrix
-        product, so only scalars are gathered per hypothesis and view."""
-        v = self.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))
-        g = np.asarray(g, dtype=np.int64)
-        k = v.shape[0]
-        w = np.ones(k) if view_weights is None else np.asarray(view_weights, dtype=np.float64)
-        terms = self.norms[g][:, :, None] - 2.0 * (self.table[g] @ v.T)  # (P, H, k)
-        cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, O)
-        per_view = np.take(terms.reshape(g.size, self.n_headings * k), cols * k + np.arange(k)[:, None], axis=1)
-        c = np.maximum(np.einsum("pko,k->po", per_view, w) + float(w @ np.sum(v * v, axis=1)), 0.0)
-        return np.where(np.isnan(c), np.inf, c)
+        Expanded as ``sum_i |y_i|^2 + |y(g, o + u_i)|^2 - 2 y_i . y(g, o + u_i)``
+        (:meth:`view_costs`, :meth:`weighed`)."""
+        return self.weighed(*self.view_costs(g, o, pans, views), view_weights)
 
     def residuals(self, pose: np.ndarray, pans: np.ndarray, views: np.ndarray) -> np.ndarray:
         """``|y_i - y(g, o + u_i)|^2`` (k,) of each view at the lattice point (g, o) nearest to
@@ -252,12 +266,17 @@ class ViewLattice:
         match ``views`` best (each view's term weighed by ``view_weights``, :meth:`costs`), each
         at its best heading, best first (fewer when fewer have every view)."""
         g, o = self.near(estimate)
-        c = self.costs(g, o, np.atleast_1d(pans), views, view_weights)  # (P, O)
+        return self.ranked(g, o, self.costs(g, o, np.atleast_1d(pans), views, view_weights), k)
+
+    def ranked(self, g: np.ndarray, o: np.ndarray, c: np.ndarray, k: int) -> list[np.ndarray]:
+        """The poses of the ``k`` positions of ``g`` (P,) whose cost ``c`` (P, O) is least at
+        their best heading of ``o`` (O,) (ties: the first heading, the earlier position), best
+        first; those without a finite cost left out."""
         if c.size == 0:
             return []
-        head = np.argmin(c, axis=1)  # each position's best heading (ties: the first)
+        head = np.argmin(c, axis=1)
         best = c[np.arange(g.size), head]
-        order = np.argsort(best, kind="stable")  # ties: the earlier position
+        order = np.argsort(best, kind="stable")
         order = order[np.isfinite(best[order])][:k]
         return [np.array([self.xy[g[i], 0], self.xy[g[i], 1], wrap_angle(o[head[i]] * self.heading_step)])
                 for i in order]
