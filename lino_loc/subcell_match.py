@@ -188,13 +188,18 @@ def subcell_fit(lattice: ViewLattice, poses: FloatArray, pans: FloatArray, views
     return SubcellSearch(lattice, poses, pans, views).fit(view_weights)
 
 
+def _axis_tents(s: float) -> FloatArray:
+    """The tents of the lattice points -1, 0, 1 of one axis at ``s`` (spacings)."""
+    return np.array([max(0.0, 1.0 - abs(s - node)) for node in (-1.0, 0.0, 1.0)])
+
+
 def _vertex(lo: float, mid: float, hi: float) -> float:
     """The vertex (in grid steps, within half a step of 0) of the parabola through
     (-1, ``lo``), (0, ``mid``), (1, ``hi``), ``mid`` the least; 0 without both neighbours."""
     curvature = lo - 2.0 * mid + hi
     if not (math.isfinite(lo) and math.isfinite(hi)) or curvature <= 0.0:
         return 0.0
-    return float(np.clip(0.5 * (lo - hi) / curvature, -0.5, 0.5))
+    return min(0.5, max(-0.5, 0.5 * (lo - hi) / curvature))
 
 
 def _refined(costs: FloatArray, i: int, missing: NDArray[np.bool_]) -> tuple[FloatArray, FloatArray]:
@@ -205,13 +210,17 @@ def _refined(costs: FloatArray, i: int, missing: NDArray[np.bool_]) -> tuple[Flo
     it), so that the fit is not held to the grid; the grid's point where the refined offset
     would interpolate from a ``missing`` (9,) lattice point."""
     n = AXIS_OFFSETS.size
-    grid = costs.reshape(n, n)
     ix, iy = divmod(i, n)
-    dx = _vertex(grid[ix - 1, iy], grid[ix, iy], grid[ix + 1, iy]) if 0 < ix < n - 1 else 0.0
-    dy = _vertex(grid[ix, iy - 1], grid[ix, iy], grid[ix, iy + 1]) if 0 < iy < n - 1 else 0.0
+    grid = costs.reshape(n, n)
+    along_x = grid[max(ix - 1, 0):ix + 2, iy].tolist()
+    along_y = grid[ix, max(iy - 1, 0):iy + 2].tolist()
+    dx = _vertex(*along_x) if 0 < ix < n - 1 else 0.0
+    dy = _vertex(*along_y) if 0 < iy < n - 1 else 0.0
+    if dx == 0.0 and dy == 0.0:
+        return POSITION_OFFSETS[i], POSITION_WEIGHTS[i]
     step = float(AXIS_OFFSETS[1] - AXIS_OFFSETS[0])
     offset = POSITION_OFFSETS[i] + step * np.array([dx, dy])
-    weights = (_tent(offset[:1], NEIGHBOURS[:, 0]) * _tent(offset[1:], NEIGHBOURS[:, 1]))[0]
-    if (dx == 0.0 and dy == 0.0) or np.any(missing[weights > 0.0]):
+    weights = np.outer(_axis_tents(float(offset[0])), _axis_tents(float(offset[1]))).ravel()  # x major
+    if np.any(missing[weights > 0.0]):
         return POSITION_OFFSETS[i], POSITION_WEIGHTS[i]
     return offset, weights
