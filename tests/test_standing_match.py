@@ -405,19 +405,26 @@ def _interpolated_cost(lattice: Any, pose: np.ndarray, pans: np.ndarray, views: 
     return total
 
 
-def test_the_fit_is_the_least_directly_interpolated_cost_on_the_search_grid() -> None:
-    """``subcell_fit``'s pose and cost against a direct computation: its cost is the directly
-    interpolated cost at its pose, and no pose of the search grid around the candidate costs
-    less (the separable quadratic form and the batched heading interpolation change nothing;
-    the refinement between the grid's points only lowers it)."""
+def _noisy_views_on_a_noisy_lattice(seed: int) -> tuple[StandingMatch, np.ndarray, np.ndarray, float]:
+    """A match on :func:`_linear_lattice` with noise on the map's features, three noisy views
+    of (0.55, 0.42) at pans off the heading lattice, and the heading step."""
     entries, feats = _linear_lattice()
-    rng = np.random.default_rng(4)
+    rng = np.random.default_rng(seed)
     match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]) + 0.1 * rng.normal(
         size=(entries.shape[0], 4)))
     assert isinstance(match, StandingMatch)
     step = 2.0 * math.pi / HEADINGS
     pans = np.array([0.0, 1.3 * step, -2.6 * step])
     views = feats(np.array([[0.55, 0.42]] * 3), 0.2 + pans) + 0.05 * rng.normal(size=(3, 4))
+    return match, pans, views, step
+
+
+def test_the_fit_is_the_least_directly_interpolated_cost_on_the_search_grid() -> None:
+    """``subcell_fit``'s pose and cost against a direct computation: its cost is the directly
+    interpolated cost at its pose, and no pose of the search grid around the candidate costs
+    less (the separable quadratic form and the batched heading interpolation change nothing;
+    the refinement between the grid's points only lowers it)."""
+    match, pans, views, step = _noisy_views_on_a_noisy_lattice(4)
     start = np.array([0.5, 0.5, 0.0])
     pose, cost, _ = subcell_fit(match.lattice, start, pans, views)
     assert cost == pytest.approx(_interpolated_cost(match.lattice, pose, pans, views), rel=1e-9)
@@ -437,14 +444,7 @@ def test_the_weighed_fit_is_the_least_weighed_cost_and_reports_each_view_s_resid
     """With view weights w, ``subcell_fit``'s cost is ``sum_i w_i r_i`` at its pose, with r_i
     each view's directly interpolated squared residual (reported unweighted), and no pose of
     the search grid has a lower weighed cost."""
-    entries, feats = _linear_lattice()
-    rng = np.random.default_rng(6)
-    match = StandingMatch.for_map(entries, feats(entries[:, :2], entries[:, 2]) + 0.1 * rng.normal(
-        size=(entries.shape[0], 4)))
-    assert isinstance(match, StandingMatch)
-    step = 2.0 * math.pi / HEADINGS
-    pans = np.array([0.0, 1.3 * step, -2.6 * step])
-    views = feats(np.array([[0.55, 0.42]] * 3), 0.2 + pans) + 0.05 * rng.normal(size=(3, 4))
+    match, pans, views, step = _noisy_views_on_a_noisy_lattice(6)
     w = np.array([1.0, 0.2, 0.7])
     start = np.array([0.5, 0.5, 0.0])
     pose, cost, residuals = subcell_fit(match.lattice, start, pans, views, w)
