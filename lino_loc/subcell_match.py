@@ -14,11 +14,12 @@ at pans ``u_i`` are placed at
 
 with view weights ``w_i`` (1 unless the caller weighs the views by their fit,
 :meth:`lino_loc.standing_match.StandingMatch.match`), searched on a grid: positions within
-one spacing of the match every ``h / SUBCELL_STEPS``, robot headings within half a heading step of it every ``dtheta / (2 HEADING_STEPS)``, and the
-position then refined between the grid's points: along each axis, the vertex of the parabola
-through the best point and its two neighbours (within a lattice cell the cost along one axis
-is a quadratic), where that costs less. A fit held to the grid would put the pose exactly on
-the grid's points, among them the midpoints between lattice points.
+one spacing of the match every ``h / SUBCELL_STEPS``, robot headings within half a heading
+step of it every ``dtheta / (2 HEADING_STEPS)``, and the position then refined between the
+grid's points: along each axis, the vertex of the parabola through the best point and its two
+neighbours (within a lattice cell the cost along one axis is a quadratic), where that costs
+less. A fit held to the grid would put the pose exactly on the grid's points, among them the
+midpoints between lattice points.
 
 Bilinear interpolation in (x, y) is the product of the tent functions
 ``max(0, 1 - |s - i|)`` along each axis (s in spacings, i in {-1, 0, 1}), and linear
@@ -148,6 +149,7 @@ class SubcellSearch:
         self.stored = yt.reshape(*yt.shape[:3], k, d).swapaxes(2, 3)  # (C, T, k, 9, d)
         self._gram = self.stored @ self.stored.swapaxes(-1, -2)  # (C, T, k, 9, 9): each view's
         self._b = (self.stored @ self.views[:, :, None])[..., 0]  # (C, T, k, 9)
+        self._norms = np.sum(self.views * self.views, axis=1)  # |v_i|^2 (k,)
         self._excluded = self.missing.astype(np.float64) @ SUPPORT.T > 0.0  # (C, T, S)
 
     def fit(self, view_weights: FloatArray | None = None) -> SubcellFit:
@@ -162,7 +164,7 @@ class SubcellSearch:
             return SubcellFit(self.poses[0].copy(), math.inf, np.full(k, np.inf))
         offset, weights = _refined(cost[c, ti], int(i), self.missing[c, ti])
         residuals = self._residuals(c, ti, weights)
-        if w @ residuals > cost[c, ti, i] + w @ np.sum(self.views * self.views, axis=1):  # the grid's point fits better
+        if w @ residuals > cost[c, ti, i] + w @ self._norms:  # the grid's point fits better
             offset = POSITION_OFFSETS[i]
             residuals = self._residuals(c, ti, POSITION_WEIGHTS[i])
         out = self.poses[c].copy()
