@@ -13,6 +13,11 @@ position error (m). The sets:
   (:mod:`lino_loc.view_spread`, the service's choice while the match acts);
 - ``random``: a0 and three other pans drawn at random (seeded).
 
+With ``--rivals`` the match is an unconfirmed belief's (``match(..., rivals=True)``): the
+views are matched as well with every map position beyond 1 m of the truth, and a far place
+that fits better by ``relocate_margin`` wins. ``relocated`` is the share of sets a far place
+took: a right belief the relocation would move away (0 without ``--rivals``).
+
 ``on_border`` is the share of sets whose matched position is equally far from two survey
 positions (within 1 nm): on the border between two of the criterion's cells, which
 ``success`` counts as right for both.
@@ -24,7 +29,7 @@ match itself on the product's map (``match_ms``: median and 90th percentile of o
 Usage::
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/standing_match_oracle.py --world office [--seed 0] [--subcell off] \
-        [--candidates K] [--scene-changes all]
+        [--candidates K] [--scene-changes all] [--rivals]
 
 With ``--scene-changes``, the test views are rendered with the world's scene changes (the
 map as surveyed), as ``eval active``'s second condition.
@@ -48,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def main() -> None:
     from drivers.sim.world import load_world
     from lino_loc.errors import LinoLocError
+    from lino_loc.lost_detection import CONFIRM_RADIUS_XY
     from lino_loc.metrics import success
     from lino_loc.standing_match import StandingMatch
     from lino_loc.view_spread import spread_values
@@ -64,6 +70,8 @@ def main() -> None:
     p.add_argument("--scene-changes", default="",
                    help="comma-separated scene changes for the test views ('all': every one the world has); "
                         "the map stays as surveyed")
+    p.add_argument("--rivals", action="store_true",
+                   help="match as an unconfirmed belief does: far places that fit better take the match")
     p.add_argument("--workers", type=int, default=2)
     a = p.parse_args()
     t0 = time.perf_counter()
@@ -90,7 +98,7 @@ def main() -> None:
     cells = np.unique(np.round(grid[:, :2], 9), axis=0)  # the criterion's survey positions
     n_a = pans.size
     rng = np.random.default_rng(a.seed)
-    out: dict[str, list[tuple[float, bool, bool]]] = {"sweep": [], "spread": [], "random": []}
+    out: dict[str, list[tuple[float, bool, bool, bool]]] = {"sweep": [], "spread": [], "random": []}
     match_s: list[float] = []
     for i, truth in enumerate(truths):
         for a0 in range(n_a):
@@ -105,17 +113,20 @@ def main() -> None:
                 for k in idx:
                     match.observe(np.zeros(3), float(pans[k]), feats[i, k])
                 t = time.perf_counter()
-                m = match.match(truth)
+                m = match.match(truth, rivals=a.rivals)
                 match_s.append(time.perf_counter() - t)
                 assert m is not None
                 two = np.sort(np.hypot(cells[:, 0] - m[0], cells[:, 1] - m[1]))[:2]
-                out[name].append((float(np.hypot(*(m[:2] - truth[:2]))),
-                                  bool(success(m[None], truth[None], grid)[0]), bool(two[1] - two[0] <= 1e-9)))
-    report = {name: {"success": round(float(np.mean([s for _, s, _ in v])), 4),
-                     "median_error_m": round(float(np.median([e for e, _, _ in v])), 4), "sets": len(v),
-                     "on_border": round(float(np.mean([b for _, _, b in v])), 4)}
+                err = float(np.hypot(*(m[:2] - truth[:2])))
+                out[name].append((err, bool(success(m[None], truth[None], grid)[0]), bool(two[1] - two[0] <= 1e-9),
+                                  err > CONFIRM_RADIUS_XY))
+    report = {name: {"success": round(float(np.mean([s for _, s, _, _ in v])), 4),
+                     "median_error_m": round(float(np.median([e for e, _, _, _ in v])), 4), "sets": len(v),
+                     "on_border": round(float(np.mean([b for _, _, b, _ in v])), 4),
+                     "relocated": round(float(np.mean([r for _, _, _, r in v])), 4)}
               for name, v in out.items()}
     print(json.dumps({"benchmark": "standing_match_oracle", "world": a.world, "seed": a.seed, "subcell": a.subcell,
+                      "rivals": a.rivals, "relocate_margin": setup.standing_match.relocate_margin,
                       "scene_changes": list(changes),
                       "candidates": setup.standing_match.candidates,
                       "positions": int(truths.shape[0]), "first_pans": n_a, "sets": report,

@@ -337,6 +337,12 @@ class Localizer:
         (``lino_loc.standing_match``); 0 when it is off."""
         return 0 if self.standing is None else self.standing.matches
 
+    @property
+    def standing_relocations(self) -> int:
+        """Of :attr:`standing_matches`, how many moved an unconfirmed belief to a far place whose
+        views fit better (``StandingMatchConfig.relocate``)."""
+        return 0 if self.standing is None else self.standing.relocations
+
     def sensor_model(
         self, channel: str = "intensity"
     ) -> NearestNeighbourSensorModel | InterpolatedSensorModel:

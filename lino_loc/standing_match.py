@@ -40,6 +40,18 @@ weights, its place is the views' joint answer. It acts only
 The heading is left to the filter: the map's headings are a lattice too, and the filter's
 heading is finer than it.
 
+A global search can settle among places that look alike (a corridor's two ends, a row of
+desks), and the match near its estimate then refines the wrong one. While the filter has not
+confirmed its belief (state ``global``; ``lino_loc.belief_challenge``), the views are matched as
+well with the whole map beyond the evaluations' confident-wrong bound
+(:data:`lino_loc.lost_detection.CONFIRM_RADIUS_XY`) of the estimate
+(:attr:`StandingMatchConfig.relocate`); a far place whose views fit better by
+:attr:`StandingMatchConfig.relocate_margin` nats takes the belief, turned to the far match's
+heading. Each frame decides again on all the views kept, so a place the first views favoured
+by chance gives the belief back when the later ones favour the other. A confirmed belief
+(``tracking``) is not moved away: the odometry since it was confirmed is evidence the views
+alone do not hold.
+
 Once the belief is gathered, it also says where the head should look next
 (:meth:`StandingMatch.action_values`, :attr:`StandingMatchConfig.choose_views`): the pan
 farthest from the views kept (:mod:`lino_loc.view_spread`), since what remains uncertain is
@@ -56,8 +68,9 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from lino_loc.active_vision import ActionValues
-from lino_loc.lost_detection import base_stands
+from lino_loc.lost_detection import CONFIRM_RADIUS_XY, base_stands
 from lino_loc.pose_estimate import Estimate
+from lino_loc.poses import wrap_angle
 from lino_loc.subcell_match import SubcellSearch
 from lino_loc.view_match import ViewLattice, ViewMatchConfig
 from lino_loc.view_spread import spread_values
@@ -117,6 +130,16 @@ class StandingMatchConfig(BaseModel):
         "weighed by 1 / (1 + r_i / (c s^2)) (Cauchy) and the match fitted again, with r_i its squared "
         "residual, s^2 the lattice's view noise (ViewLattice.s2) and c this scale; 0: every view alike"
     )
+    relocate: bool = Field(
+        True, description="while the filter's belief is unconfirmed (state 'global'), also match the views "
+        "against the map positions far from the estimate (beyond lino_loc.lost_detection.CONFIRM_RADIUS_XY); "
+        "one whose fit beats the fit near the estimate by relocate_margin takes the belief"
+    )
+    relocate_margin: float = Field(
+        1.0, ge=0.0, description="nats: how much better a far place's views must fit than those near the "
+        "estimate to take the belief, as (c_near - c_far) / (2 s^2) of the first fits' costs c, s^2 the "
+        "lattice's view noise (ViewLattice.s2)"
+    )
     min_headings: int = Field(
         8, ge=2, description="a map whose positions hold fewer headings than this on average is no "
         "lattice of positions x headings (e.g. a survey's poses taken on the way): no match"
@@ -151,6 +174,7 @@ class StandingMatch:
         self._held = False
         self._standing = False  # whether the base stood for the last frame
         self.matches = 0  # times the belief was moved (status and tests)
+        self.relocations = 0  # of them, times a far place took it
 
     @classmethod
     def for_map(cls, poses: ArrayLike, features: ArrayLike,
@@ -212,23 +236,52 @@ class StandingMatch:
             del self._pans[0], self._views[0]
         return standing
 
-    def match(self, estimate: ArrayLike) -> FloatArray | None:
+    def match(self, estimate: ArrayLike, rivals: bool = False) -> FloatArray | None:
         """The matched robot pose (x, y, theta) near ``estimate``, None without enough views
-        or candidates. With ``robust_scale``, fitted twice: the second time each view weighed by
-        its fit in the first (:func:`cauchy_weights`), so that a view of something the map does
-        not hold (a moved chair, a person) pulls the pose less. The second fit reuses the
-        first's per-view costs, and its search where the candidates are the same."""
+        or candidates (:meth:`_match`); with ``rivals`` and ``relocate``, a far place's pose
+        where its views fit better by ``relocate_margin``."""
+        m = self._match(np.asarray(estimate, dtype=np.float64), rivals)
+        return None if m is None else m[0]
+
+    def _match(self, estimate: FloatArray, rivals: bool) -> tuple[FloatArray, bool] | None:
+        """The matched pose and whether it is a far place's (module docstring), None without
+        enough views or candidates near ``estimate``. With ``rivals`` and ``relocate``, the views
+        are matched as well with the map positions beyond
+        :data:`lino_loc.lost_detection.CONFIRM_RADIUS_XY` of the estimate, at every heading;
+        the far match wins when its first fit's cost is below the near one's by ``2 s^2``
+        ``relocate_margin`` (a likelihood ratio of ``exp(relocate_margin)`` under the lattice's
+        Gaussian view noise ``s^2``)."""
         if len(self._views) < self.config.min_views:
             return None
         pans, views = np.asarray(self._pans), np.stack(self._views)
-        g, o = self.lattice.near(np.asarray(estimate, dtype=np.float64))
+        near = self._match_among(*self.lattice.near(estimate), pans, views)
+        if near is None or not (rivals and self.config.relocate):
+            return None if near is None else (near[0], False)
+        g, o = self.lattice.beyond(estimate, CONFIRM_RADIUS_XY)
+        far = self._match_among(g, o, pans, views, robust=False)
+        if far is None or near[1] - far[1] <= 2.0 * self.lattice.s2 * self.config.relocate_margin:
+            return near[0], False
+        won = self._match_among(g, o, pans, views)  # the far place's pose, fitted as the near one's
+        return (far[0] if won is None else won[0]), True
+
+    def _match_among(self, g: NDArray[np.int64], o: NDArray[np.int64], pans: FloatArray,
+                     views: FloatArray, robust: bool = True) -> tuple[FloatArray, float] | None:
+        """The matched pose among the hypotheses ``g`` x ``o`` and its first fit's cost (every view
+        alike), None without candidates. With ``robust`` and ``robust_scale``, fitted twice: the second time
+        each view weighed by its fit in the first (:func:`cauchy_weights`), so that a view of
+        something the map does not hold (a moved chair, a person) pulls the pose less. The
+        second fit reuses the first's per-view costs, and its search where the candidates are
+        the same."""
         costs = self.lattice.view_costs(g, o, pans, views)
         first = self._fit(g, o, costs, pans, views, None, None)
-        if first is None or self.config.robust_scale <= 0.0:
-            return None if first is None else first[0]
+        if first is None:
+            return None
+        cost = float(np.sum(first[1]))
+        if not robust or self.config.robust_scale <= 0.0:
+            return first[0], cost
         weights = cauchy_weights(first[1], self.config.robust_scale * self.lattice.s2)
         second = self._fit(g, o, costs, pans, views, weights, first[2]) if np.any(weights > 0.0) else None
-        return (first if second is None else second)[0]
+        return (first if second is None else second)[0], cost
 
     def _fit(self, g: NDArray[np.int64], o: NDArray[np.int64], costs: tuple[FloatArray, FloatArray],
              pans: FloatArray, views: FloatArray, weights: FloatArray | None,
@@ -252,14 +305,16 @@ class StandingMatch:
         keep the view (:meth:`observe`) and move the filter's belief to the views' match
         (:meth:`recentre`); a lost belief forgets the views (they may come from two places).
         Nothing moves on the frame the base moved on: its view starts the next set, and one
-        view taken on the way is no standing robot's. Returns whether the belief moved."""
+        view taken on the way is no standing robot's. While the filter has not confirmed its
+        belief (state ``global``) the views' far rivals are matched too (``relocate``).
+        Returns whether the belief moved."""
         if not self.observe(delta, pan, features) or self._held:
             return False
         est = pf.estimate()
         if est.state == "lost":
             self.reset()
             return False
-        moved = self.recentre(pf.particles, pf.weights, est.pose)
+        moved = self.recentre(pf.particles, pf.weights, est.pose, rivals=est.state == "global")
         if moved is None:
             return False
         pf.move_particles(moved)
@@ -268,17 +323,28 @@ class StandingMatch:
     def _near(self, particles: FloatArray, weights: FloatArray, estimate: FloatArray) -> NDArray[np.bool_] | None:
         return gathered(particles, weights, estimate, self.config.radius, self.config.gate)
 
-    def recentre(self, particles: FloatArray, weights: FloatArray, estimate: ArrayLike) -> FloatArray | None:
+    def recentre(self, particles: FloatArray, weights: FloatArray, estimate: ArrayLike,
+                 rivals: bool = False) -> FloatArray | None:
         """The particles (N, 3) with those within ``radius`` of ``estimate`` moved by the matched
-        position minus the estimate; None when the match does not act (module docstring)."""
+        position minus the estimate; None when the match does not act (module docstring). With
+        ``rivals`` (an unconfirmed belief), a far place that fits better takes them: they keep
+        their spread about the estimate, turned by the far match's heading minus the estimate's."""
         est = np.asarray(estimate, dtype=np.float64)
         near = self._near(particles, weights, est)
-        m = None if near is None else self.match(est)
+        m = None if near is None else self._match(est, rivals)
         if m is None or near is None:
             return None
+        pose, far = m
         moved = np.array(particles, dtype=np.float64, copy=True)
-        moved[near, :2] += m[:2] - est[:2]
+        turn = float(wrap_angle(pose[2] - est[2])) if far else 0.0
+        c, s = math.cos(turn), math.sin(turn)
+        off = moved[near, :2] - est[:2]
+        moved[near, 0] = pose[0] + c * off[:, 0] - s * off[:, 1]
+        moved[near, 1] = pose[1] + s * off[:, 0] + c * off[:, 1]
+        if far:
+            moved[near, 2] = wrap_angle(moved[near, 2] + turn)
         self.matches += 1
+        self.relocations += int(far)
         return moved
 
     def action_values(self, particles: FloatArray, weights: FloatArray, estimate: ArrayLike,

@@ -186,6 +186,12 @@ class ViewLattice:
         o = heads[np.abs(wrap_angle(heads * self.heading_step - estimate[2])) <= c.heading_span + 1e-9]
         return g, o
 
+    def beyond(self, estimate: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """The axes of the hypotheses far from ``estimate`` (x, y, theta): the map positions
+        (P,) farther than ``distance`` (m) from it, in ascending order, and every heading index."""
+        g = np.flatnonzero(np.hypot(self.xy[:, 0] - estimate[0], self.xy[:, 1] - estimate[1]) > distance)
+        return g, np.arange(self.n_headings)
+
     def hypotheses(self, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position and heading indices (P O,) of the lattice points near ``estimate`` (x, y,
         theta): :meth:`near`'s pairs, position major."""
@@ -210,7 +216,9 @@ class ViewLattice:
         v = self.weigh(np.atleast_2d(np.asarray(views, dtype=np.float64)))
         g = np.asarray(g, dtype=np.int64)
         k = v.shape[0]
-        terms = self.norms[g][:, :, None] - 2.0 * (self.table[g] @ v.T)  # (P, H, k)
+        # most positions (a search of the whole map): one product over the table, then its rows
+        dots = (self.table @ v.T)[g] if 2 * g.size > self.xy.shape[0] else self.table[g] @ v.T
+        terms = self.norms[g][:, :, None] - 2.0 * dots  # (P, H, k)
         cols = (np.asarray(o, dtype=np.int64)[None, :] + self._shift(pans)[:, None]) % self.n_headings  # (k, O)
         per_view = np.take(terms.reshape(g.size, self.n_headings * k), cols * k + np.arange(k)[:, None], axis=1)
         return per_view, np.sum(v * v, axis=1)

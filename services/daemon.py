@@ -293,8 +293,8 @@ class Daemon:
             sources=StatusSources(self._state, lambda: self.localizer.appearance_changes,
                                   self.active.info, self._persistence_info, self._pose_port_info,
                                   lambda: self.control.refused_handshakes if self.control else 0,
-                                  self.recorder.info, self.live.info,
-                                  lambda: self.localizer.standing_matches),
+                                  self.recorder.info, self.live.info, lambda: self.localizer.standing_matches,
+                                  lambda: self.localizer.standing_relocations),
         )
         self.initial_belief: str | None = None  # how the belief started (status)
         self.refresh = MapRefreshWriter.for_map(cfg.map_refresh, amap)

@@ -463,6 +463,10 @@ class StatusMessage(_Published):
         0, ge=0, description="updates whose standing match moved the belief to where the views "
         "taken while standing jointly match the map's (localizer.standing_match), since start"
     )
+    standing_relocations: int = Field(
+        0, ge=0, description="of standing_matches, those that moved an unconfirmed belief to a place "
+        "far from the estimate whose views fit better (localizer.standing_match.relocate), since start"
+    )
     latency_ms: LatencyStats = Field(default_factory=LatencyStats)
     devices: dict[str, DeviceHealthModel] = Field(
         default_factory=dict, description="keys: camera, head, odometry"

@@ -108,7 +108,7 @@ EXAMPLES: dict[str, list[dict[str, Any]]] = {
         {
             "v": 1, "stamp": 1763767826.0, "state": "tracking", "pose_rate_hz": 14.9,
             "frame_rate_hz": 15.0, "frames": 27510, "dropped_frames": 12, "out_of_order_frames": 0,
-            "appearance_changes": 0, "update_errors": 0, "standing_matches": 4,
+            "appearance_changes": 0, "update_errors": 0, "standing_matches": 4, "standing_relocations": 1,
             "latency_ms": {"p50": 21.3, "p99": 48.0},
             "devices": {
                 "camera": {"state": "ok", "error": None, "error_stamp": None, "counters": {"frames": 27510}},

@@ -107,6 +107,7 @@ class StatusSources:
     recording: Callable[[], RecordingInfo | None] = lambda: None
     live_view: Callable[[], LiveViewInfo | None] = lambda: None
     standing_matches: Callable[[], int] = lambda: 0
+    standing_relocations: Callable[[], int] = lambda: 0
 
 
 class StatusReporter:
@@ -247,6 +248,7 @@ class StatusReporter:
             update_errors=update_errors,
             appearance_changes=self.sources.appearance_changes(),
             standing_matches=self.sources.standing_matches(),
+            standing_relocations=self.sources.standing_relocations(),
             latency_ms=latency,
             devices={k: DeviceHealthModel.from_health(h) for k, h in health.items()},
             uptime_s=self._clock() - self._started,

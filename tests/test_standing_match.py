@@ -580,3 +580,103 @@ def test_an_operator_s_pose_holds_until_the_robot_moves() -> None:
     for pan in (0.5, 1.0):
         est = loc.update(np.zeros(3), pan, f_img(truth + [0.0, 0.0, pan])[0] + rng.normal(0, 0.02, 16))
     assert loc.standing.matches >= 1 and np.hypot(*(est.pose[:2] - truth[:2])) < 1e-6
+
+
+def _twin_rooms(differ: float) -> tuple[StandingMatch, np.ndarray, np.ndarray]:
+    """Two 3 x 3 blocks of lattice positions 3 m apart whose views are the same but for the
+    second's at camera headings 0 and 90 deg, ``differ`` off in every feature (features
+    unweighed, on the lattice): places that look alike but for two views."""
+    rng = np.random.default_rng(8)
+    h = np.arange(HEADINGS) * 2.0 * math.pi / HEADINGS
+    block = [(x, y) for x in np.arange(3) * 0.25 for y in np.arange(3) * 0.25]
+    feats = {(xy, i): rng.normal(size=4) for xy in block for i in range(HEADINGS)}
+    entries, features = [], []
+    for dx in (0.0, 3.0):
+        for xy in block:
+            for i, t in enumerate(h):
+                entries.append([xy[0] + dx, xy[1], t])
+                features.append(feats[(xy, i)] + (differ if dx and i in (0, HEADINGS // 4) else 0.0))
+    match = StandingMatch.for_map(np.array(entries), np.array(features),
+                                  StandingMatchConfig(subcell=False, weigh_features=False))
+    assert isinstance(match, StandingMatch)
+    return match, np.array(entries), np.array(features)
+
+
+def test_beyond_is_every_heading_of_the_positions_farther_than_the_distance() -> None:
+    match, _, _ = _twin_rooms(1.0)
+    g, o = match.lattice.beyond(np.array([0.25, 0.25, 1.0]), 1.0)
+    far = np.hypot(match.lattice.xy[:, 0] - 0.25, match.lattice.xy[:, 1] - 0.25) > 1.0
+    assert np.array_equal(g, np.flatnonzero(far)) and g.size == 9 and np.all(match.lattice.xy[g, 0] >= 3.0)
+    assert np.array_equal(o, np.arange(HEADINGS))
+
+
+def _twin_views(match: StandingMatch, entries: np.ndarray, features: np.ndarray, heading: float) -> None:
+    """Views at the second block's (3.25, 0.25) at robot ``heading``, pans 0 and 90 deg and 60 deg
+    (camera headings 0, 90 and 60 deg: the two that differ and one that does not)."""
+    for pan in (0.0, math.pi / 2, math.pi / 3):
+        match.observe(np.zeros(3), pan, _stored(entries, features, (3.25, 0.25), heading + pan))
+
+
+@pytest.mark.parametrize("rivals", [False, True])
+def test_an_unconfirmed_belief_goes_to_the_far_place_whose_views_fit_better(rivals: bool) -> None:
+    """The views are the second block's; the belief gathered at the first block's twin of the
+    place, at another heading. No match near it fits the views that differ; with rivals
+    (an unconfirmed belief), the far place takes the particles near the estimate: their spread
+    turned by the far heading minus the estimate's, the others left alone."""
+    match, entries, features = _twin_rooms(3.0)
+    _twin_views(match, entries, features, 0.0)
+    rng = np.random.default_rng(2)
+    est = np.array([0.27, 0.22, 0.5])
+    near = est + rng.normal(scale=[0.05, 0.05, 0.05], size=(80, 3))
+    others = np.column_stack([rng.uniform(1.5, 2.0, 20), rng.uniform(0.0, 0.5, 20), rng.uniform(-3, 3, 20)])
+    moved = match.recentre(np.vstack([near, others]), np.full(100, 0.01), est, rivals=rivals)
+    assert moved is not None and match.matches == 1 and match.relocations == int(rivals)
+    assert np.array_equal(moved[80:], others)
+    if not rivals:  # the near match: shifted within the first block, the heading the filter's
+        shift = moved[:80, :2] - near[:, :2]
+        assert np.allclose(shift, shift[0]) and np.all(moved[:80, 0] < 1.0)
+        assert np.array_equal(moved[:80, 2], near[:, 2])
+        return
+    turn = -0.5
+    off = near[:, :2] - est[:2]
+    rotated = np.column_stack([math.cos(turn) * off[:, 0] - math.sin(turn) * off[:, 1],
+                               math.sin(turn) * off[:, 0] + math.cos(turn) * off[:, 1]])
+    assert np.allclose(moved[:80, :2], np.array([3.25, 0.25]) + rotated)
+    assert np.allclose(np.angle(np.exp(1j * (moved[:80, 2] - near[:, 2]))), turn)
+    assert np.allclose(match.match(est, rivals=True), [3.25, 0.25, 0.0])
+
+
+def test_the_far_place_must_fit_better_by_the_margin() -> None:
+    """Near cost minus far cost is exactly the two differing views' 2 x 4 x differ^2 (the far
+    place fits the noiseless views exactly): a margin below its ratio to 2 s^2 relocates, one
+    above does not."""
+    differ = 0.8
+    base, entries, features = _twin_rooms(differ)
+    nats = 2 * 4 * differ**2 / (2.0 * base.lattice.s2)
+    est = np.array([0.25, 0.25, 0.0])
+    for margin, far in ((0.98 * nats, True), (1.02 * nats, False)):
+        match = StandingMatch(base.lattice, base.config.model_copy(update={"relocate_margin": margin}))
+        _twin_views(match, entries, features, 0.0)
+        pose = match.match(est, rivals=True)
+        assert pose is not None and (pose[0] > 3.0) == far
+    off = StandingMatch(base.lattice, base.config.model_copy(update={"relocate": False}))
+    _twin_views(off, entries, features, 0.0)
+    assert off.match(est, rivals=True)[0] < 1.0
+
+
+@pytest.mark.parametrize("state", ["global", "tracking"])
+def test_only_an_unconfirmed_belief_is_relocated(state: str) -> None:
+    """The filter's confirmed belief (``tracking``) stays near its estimate, where the views
+    still place it; an unconfirmed one (``global``) goes to the far place."""
+    match, entries, features = _twin_rooms(3.0)
+    rng = np.random.default_rng(3)
+    pf = SimpleNamespace(particles=np.array([0.25, 0.25, 0.0]) + rng.normal(scale=0.03, size=(50, 3)),
+                         weights=np.full(50, 0.02))
+    pf.estimate = lambda: SimpleNamespace(state=state, pose=np.mean(pf.particles, axis=0))
+    pf.move_particles = lambda p: setattr(pf, "particles", np.asarray(p))
+    for pan in (0.0, math.pi / 2, math.pi / 3):
+        match.step(pf, np.zeros(3), pan, _stored(entries, features, (3.25, 0.25), pan))
+    # the second view relocates; the third is matched where the belief now is
+    assert match.matches == 2 and match.relocations == (1 if state == "global" else 0)
+    x = float(np.mean(pf.particles[:, 0]))
+    assert (x > 3.0) if state == "global" else (x < 1.0)

@@ -106,6 +106,19 @@ def test_the_costs_are_the_summed_squared_distances_to_the_stored_views() -> Non
     assert np.allclose(c[np.isfinite(c)], direct[np.isfinite(direct)], rtol=1e-12, atol=1e-12)
 
 
+def test_the_costs_of_a_few_positions_are_the_rows_of_the_whole_map_s() -> None:
+    """A few positions' views are compared with the stored views of those positions only, most
+    positions' in one product over the whole table: the same costs."""
+    rng = np.random.default_rng(4)
+    xy = np.array([[x, y] for x in (0.0, 0.25, 0.5) for y in (0.0, 0.25)])
+    lat = _lattice(rng.normal(size=(6, HEADINGS, 5)), xy)
+    heads = np.arange(HEADINGS)
+    pans, views = np.array([0.0, math.pi / 4]), rng.normal(size=(2, 5))
+    whole = lat.costs(np.arange(6), heads, pans, views)
+    few = np.array([1, 4])
+    assert np.allclose(lat.costs(few, heads, pans, views), whole[few], rtol=1e-12, atol=1e-12)
+
+
 def test_weighed_costs_and_residuals_are_the_direct_sums() -> None:
     """``costs`` with view weights is ``sum_i w_i |y_i - y(g, o + u_i)|^2``; ``residuals`` at a
     pose are the terms of its nearest lattice point (inf for a missing view)."""

@@ -74,7 +74,8 @@ def time_standing(amap: Any, n_particles: int, views: Any, pose: Any, repeats: i
     match on and off (two Localizers from the same seed, interleaved, the first of each pair
     alternating), each started from a recalled pose (an operator's would hold the match). The
     warm-up fills the match's views, one per pan. ``matches``: the updates whose match moved
-    the belief."""
+    the belief; ``relocations``: of them, those a far place took (``StandingMatchConfig.relocate``);
+    ``state``: the filter's at the end (the far places are matched only while it is ``global``)."""
     import time
 
     import numpy as np
@@ -101,7 +102,8 @@ def time_standing(amap: Any, n_particles: int, views: Any, pose: Any, repeats: i
     match = locs["on"].standing
     out: dict[str, Any] = {"particles": n_particles, "updates": repeats,
                            "lattice": match is not None, "views_kept": 0 if match is None else match.n_views,
-                           "matches": locs["on"].standing_matches}
+                           "matches": locs["on"].standing_matches, "relocations": locs["on"].standing_relocations,
+                           "state": locs["on"].filter.estimate().state}
     out.update({arm: _percentiles(ts) for arm, ts in wall.items()})
     return out
 
