@@ -429,15 +429,21 @@ class AuxiliaryParticleFilter:
         self.challenge.reset()
         self._uniform_prior = False
 
-    def move_particles(self, particles: ArrayLike) -> None:
+    def move_particles(self, particles: ArrayLike, relocated: bool = False) -> None:
         """Move the particles to new poses (N, 3), same N, keeping their weights and the
         filter's evidence (lost test, recovery, challenge): the belief moved, not replaced
-        (:class:`lino_loc.standing_match.StandingMatch`). Raises ValueError on another shape."""
+        (:class:`lino_loc.standing_match.StandingMatch`). ``relocated``: the belief was taken
+        to another place, so the belief that converges next is a new one (its lost test, view
+        fit and challenge start afresh; a challenge resumes only at the place it stopped, as
+        after a spread). Raises ValueError on another shape."""
         p = np.asarray(particles, dtype=np.float64).reshape(-1, 3).copy()
         if p.shape != self._particles.shape:
             raise ValueError(f"move_particles: {p.shape[0]} poses for {self._particles.shape[0]} particles")
         p[:, 2] = wrap_angle(p[:, 2])
         self._assign(p, self._weights)
+        if relocated:
+            self._belief_converged = False
+            self.challenge.stop()
 
     # ----------------------------------------------------------------- update
 

@@ -90,7 +90,7 @@ class ParticleFilterLike(Protocol):
 
     def estimate(self) -> Estimate: ...
 
-    def move_particles(self, particles: ArrayLike) -> None: ...
+    def move_particles(self, particles: ArrayLike, relocated: bool = False) -> None: ...
 
 
 class StandingMatchConfig(BaseModel):
@@ -314,10 +314,11 @@ class StandingMatch:
         if est.state == "lost":
             self.reset()
             return False
+        before = self.relocations
         moved = self.recentre(pf.particles, pf.weights, est.pose, rivals=est.state == "global")
         if moved is None:
             return False
-        pf.move_particles(moved)
+        pf.move_particles(moved, relocated=self.relocations > before)
         return True
 
     def _near(self, particles: FloatArray, weights: FloatArray, estimate: FloatArray) -> NDArray[np.bool_] | None:

@@ -673,10 +673,29 @@ def test_only_an_unconfirmed_belief_is_relocated(state: str) -> None:
     pf = SimpleNamespace(particles=np.array([0.25, 0.25, 0.0]) + rng.normal(scale=0.03, size=(50, 3)),
                          weights=np.full(50, 0.02))
     pf.estimate = lambda: SimpleNamespace(state=state, pose=np.mean(pf.particles, axis=0))
-    pf.move_particles = lambda p: setattr(pf, "particles", np.asarray(p))
+    moves: list[bool] = []
+
+    def move(particles: np.ndarray, relocated: bool = False) -> None:
+        pf.particles = np.asarray(particles)
+        moves.append(relocated)
+
+    pf.move_particles = move
     for pan in (0.0, math.pi / 2, math.pi / 3):
         match.step(pf, np.zeros(3), pan, _stored(entries, features, (3.25, 0.25), pan))
-    # the second view relocates; the third is matched where the belief now is
+    # the second view relocates (the filter is told: a new belief); the third is matched where the belief now is
     assert match.matches == 2 and match.relocations == (1 if state == "global" else 0)
+    assert moves == ([True, False] if state == "global" else [False, False])
     x = float(np.mean(pf.particles[:, 0]))
     assert (x > 3.0) if state == "global" else (x < 1.0)
+
+
+@pytest.mark.parametrize("relocated", [False, True])
+def test_a_relocated_belief_is_a_new_one_for_the_filter(relocated: bool) -> None:
+    """Moved within its neighbourhood the belief keeps its challenge; taken to another place it
+    is a new belief, whose challenge starts afresh when it converges (there)."""
+    pf = _filter()
+    pf.set_pose([0.4, 0.35, 0.0], np.diag([0.03**2, 0.03**2, 0.02**2]), confirmed=False)
+    pf.challenge.start(pf.estimate().pose)
+    assert pf.challenge.active
+    pf.move_particles(pf.particles + [1.5, 0.0, 0.0], relocated=relocated)
+    assert pf.challenge.active != relocated
