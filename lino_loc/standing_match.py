@@ -61,7 +61,7 @@ the match's own error, which the filter's H(u) cannot see.
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -91,6 +91,24 @@ class ParticleFilterLike(Protocol):
     def estimate(self) -> Estimate: ...
 
     def move_particles(self, particles: ArrayLike, relocated: bool = False) -> None: ...
+
+
+class _FirstFit(NamedTuple):
+    """A fit with every view alike: its hypotheses' axes and per-view costs
+    (:meth:`ViewLattice.view_costs`), the pose, each view's squared residual there and the
+    subcell search (None: on the lattice), kept for the weighed second fit."""
+
+    g: NDArray[np.int64]
+    o: NDArray[np.int64]
+    costs: tuple[FloatArray, FloatArray]
+    pose: FloatArray
+    residuals: FloatArray
+    search: SubcellSearch | None
+
+    @property
+    def cost(self) -> float:
+        """The fit's cost: its views' squared residuals summed."""
+        return float(np.sum(self.residuals))
 
 
 class StandingMatchConfig(BaseModel):
@@ -254,34 +272,36 @@ class StandingMatch:
         if len(self._views) < self.config.min_views:
             return None
         pans, views = np.asarray(self._pans), np.stack(self._views)
-        near = self._match_among(*self.lattice.near(estimate), pans, views)
-        if near is None or not (rivals and self.config.relocate):
-            return None if near is None else (near[0], False)
-        g, o = self.lattice.beyond(estimate, CONFIRM_RADIUS_XY)
-        far = self._match_among(g, o, pans, views, robust=False)
-        if far is None or near[1] - far[1] <= 2.0 * self.lattice.s2 * self.config.relocate_margin:
-            return near[0], False
-        won = self._match_among(g, o, pans, views)  # the far place's pose, fitted as the near one's
-        return (far[0] if won is None else won[0]), True
+        near = self._first_fit(*self.lattice.near(estimate), pans, views)
+        if near is None:
+            return None
+        if rivals and self.config.relocate:
+            far = self._first_fit(*self.lattice.beyond(estimate, CONFIRM_RADIUS_XY), pans, views)
+            if far is not None and near.cost - far.cost > 2.0 * self.lattice.s2 * self.config.relocate_margin:
+                return self._refit(far, pans, views), True
+        return self._refit(near, pans, views), False
 
-    def _match_among(self, g: NDArray[np.int64], o: NDArray[np.int64], pans: FloatArray,
-                     views: FloatArray, robust: bool = True) -> tuple[FloatArray, float] | None:
-        """The matched pose among the hypotheses ``g`` x ``o`` and its first fit's cost (every view
-        alike), None without candidates. With ``robust`` and ``robust_scale``, fitted twice: the second time
+    def _first_fit(self, g: NDArray[np.int64], o: NDArray[np.int64], pans: FloatArray,
+                   views: FloatArray) -> _FirstFit | None:
+        """The first fit (every view alike) among the hypotheses ``g`` x ``o``, None without
+        candidates."""
+        costs = self.lattice.view_costs(g, o, pans, views)
+        first = self._fit(g, o, costs, pans, views, None, None)
+        return None if first is None else _FirstFit(g, o, costs, *first)
+
+    def _refit(self, first: _FirstFit, pans: FloatArray, views: FloatArray) -> FloatArray:
+        """The matched pose from a first fit. With ``robust_scale``, fitted a second time with
         each view weighed by its fit in the first (:func:`cauchy_weights`), so that a view of
         something the map does not hold (a moved chair, a person) pulls the pose less. The
         second fit reuses the first's per-view costs, and its search where the candidates are
         the same."""
-        costs = self.lattice.view_costs(g, o, pans, views)
-        first = self._fit(g, o, costs, pans, views, None, None)
-        if first is None:
-            return None
-        cost = float(np.sum(first[1]))
-        if not robust or self.config.robust_scale <= 0.0:
-            return first[0], cost
-        weights = cauchy_weights(first[1], self.config.robust_scale * self.lattice.s2)
-        second = self._fit(g, o, costs, pans, views, weights, first[2]) if np.any(weights > 0.0) else None
-        return (first if second is None else second)[0], cost
+        if self.config.robust_scale <= 0.0:
+            return first.pose
+        weights = cauchy_weights(first.residuals, self.config.robust_scale * self.lattice.s2)
+        if not np.any(weights > 0.0):
+            return first.pose
+        second = self._fit(first.g, first.o, first.costs, pans, views, weights, first.search)
+        return first.pose if second is None else second[0]
 
     def _fit(self, g: NDArray[np.int64], o: NDArray[np.int64], costs: tuple[FloatArray, FloatArray],
              pans: FloatArray, views: FloatArray, weights: FloatArray | None,
